@@ -1,0 +1,351 @@
+"""Loading a COLMAP reconstruction (read with pycolmap) into plain arrays.
+
+``load_scene(scene_dir)`` finds the model (``sparse/0``, ``sparse`` or the folder itself,
+binary or text), checks it and its images, undistorts non-pinhole cameras to pinhole with
+pycolmap's own undistorter (into a cache, never over the user's images) and returns a
+:class:`Scene`: one :class:`~.cameras.Camera` per registered image, sorted by name, and the
+sparse points with their colours.
+
+Every problem raises :class:`~.errors.SceneError` whose message names the file at fault.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import struct
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .cameras import Camera, quat_to_rotmat
+from .errors import ImageError, SceneError
+from .images import image_size, read_image
+
+#: Camera models used as they are.
+PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
+#: Camera models undistorted to PINHOLE with pycolmap's undistorter before use.
+UNDISTORTED_MODELS = (
+    "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE",
+    "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "RAD_TAN_THIN_PRISM_FISHEYE", "FOV",
+    "SIMPLE_DIVISION", "DIVISION",
+)
+#: Number of parameters per COLMAP camera model id (COLMAP's models.h), for checking cameras.bin.
+_MODEL_NUM_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12,
+                     11: 16, 12: 4, 13: 5, 14: 3, 15: 4, 16: 6, 17: 2}
+_MODEL_FILES = ("cameras", "images", "points3D")
+
+
+@dataclass
+class Scene:
+    """A loaded survey.
+
+    Attributes:
+        scene_dir: the folder the user chose.
+        model_dir: the folder holding the COLMAP model that was read.
+        image_dir: the folder images are read from (the undistortion cache when undistorted).
+        cameras: one pinhole Camera per registered image, sorted by image name.
+        points: (M, 3) float32 sparse points, world coordinates.
+        colors: (M, 3) uint8 RGB colours of the points.
+        undistorted: True when the images were undistorted into ``image_dir``.
+    """
+
+    scene_dir: Path
+    model_dir: Path
+    image_dir: Path
+    cameras: list[Camera]
+    points: np.ndarray = field(repr=False)
+    colors: np.ndarray = field(repr=False)
+    undistorted: bool = False
+
+    def image_path(self, camera: Camera) -> Path:
+        return self.image_dir / camera.name
+
+    def load_image(self, camera: Camera, downscale: int = 1) -> np.ndarray:
+        """(H, W, 3) float32 image of ``camera`` (see :func:`.images.read_image`)."""
+        return read_image(self.image_path(camera), downscale)
+
+    def extent(self) -> float:
+        """Scene radius as INRIA defines it: 1.1 x the largest camera distance to their centroid."""
+        centres = np.stack([c.center for c in self.cameras]) if self.cameras else np.zeros((1, 3))
+        return float(1.1 * max(np.linalg.norm(centres - centres.mean(0), axis=1).max(), 1e-6))
+
+
+def find_model_dir(scene_dir: str | os.PathLike) -> Path:
+    """The folder holding cameras/images/points3D: ``sparse/0``, ``sparse`` or ``scene_dir``."""
+    scene_dir = Path(scene_dir)
+    if not scene_dir.is_dir():
+        raise SceneError(f"{scene_dir}: folder does not exist")
+    candidates = [scene_dir / "sparse" / "0", scene_dir / "sparse", scene_dir]
+    for cand in candidates:
+        if any((cand / f"cameras{ext}").exists() or (cand / f"images{ext}").exists()
+               for ext in (".bin", ".txt")):
+            return cand
+    looked = ", ".join(str(c) for c in candidates)
+    raise SceneError(f"{scene_dir}: no COLMAP model found (looked for cameras.bin or cameras.txt in {looked})")
+
+
+def _model_format(model_dir: Path) -> str:
+    for ext in (".bin", ".txt"):
+        present = [(model_dir / f"{n}{ext}").exists() for n in _MODEL_FILES]
+        if any(present):
+            missing = [f"{n}{ext}" for n, p in zip(_MODEL_FILES, present) if not p]
+            if missing:
+                raise SceneError(f"{model_dir / missing[0]}: file is missing (the COLMAP model needs "
+                                 f"cameras{ext}, images{ext} and points3D{ext})")
+            return ext
+    raise SceneError(f"{model_dir}: no cameras.bin or cameras.txt")
+
+
+# --- binary model checks -------------------------------------------------------------------
+# pycolmap reads a truncated cameras.bin without complaint, so the binary files are walked
+# here first. Only cameras and images are walked record by record (a few hundred records);
+# points3D.bin is checked by its exact size, computed from the observations in images.bin.
+
+def _check_cameras_bin(path: Path) -> None:
+    data = path.read_bytes()
+    if len(data) < 8:
+        raise SceneError(f"{path}: file is truncated ({len(data)} bytes)")
+    (n,) = struct.unpack_from("<Q", data, 0)
+    off = 8
+    for i in range(n):
+        if off + 24 > len(data):
+            raise SceneError(f"{path}: file is truncated (camera {i + 1} of {n} is cut off)")
+        _, model_id, _, _ = struct.unpack_from("<iiQQ", data, off)
+        if model_id not in _MODEL_NUM_PARAMS:
+            raise SceneError(f"{path}: camera {i + 1} has unknown camera model id {model_id}; "
+                             "the file is corrupt or from an unsupported COLMAP version")
+        off += 24 + 8 * _MODEL_NUM_PARAMS[model_id]
+    if off != len(data):
+        what = "truncated" if off > len(data) else f"longer than its {n} cameras ({len(data) - off} extra bytes)"
+        raise SceneError(f"{path}: file is {what}; it may be corrupt")
+
+
+def _check_images_bin(path: Path) -> int:
+    """Walk images.bin; return the number of 2D points that have a 3D point."""
+    data = path.read_bytes()
+    if len(data) < 8:
+        raise SceneError(f"{path}: file is truncated ({len(data)} bytes)")
+    (n,) = struct.unpack_from("<Q", data, 0)
+    off, n_obs = 8, 0
+    for i in range(n):
+        end_fixed = off + 64
+        name_end = data.find(b"\0", end_fixed) if end_fixed <= len(data) else -1
+        if name_end < 0 or name_end + 9 > len(data):
+            raise SceneError(f"{path}: file is truncated (image {i + 1} of {n} is cut off)")
+        (n2d,) = struct.unpack_from("<Q", data, name_end + 1)
+        off = name_end + 9
+        if off + 24 * n2d > len(data):
+            raise SceneError(f"{path}: file is truncated (image {i + 1} of {n} is cut off)")
+        if n2d:
+            ids = np.frombuffer(data, dtype="<i8", count=3 * n2d, offset=off)[2::3]
+            n_obs += int(np.count_nonzero(ids != -1))
+        off += 24 * n2d
+    if off != len(data):
+        raise SceneError(f"{path}: file is longer than its {n} images ({len(data) - off} extra bytes); "
+                         "it may be corrupt")
+    return n_obs
+
+
+def _check_points_bin(path: Path, n_obs: int) -> None:
+    size = path.stat().st_size
+    if size < 8:
+        raise SceneError(f"{path}: file is truncated ({size} bytes)")
+    with open(path, "rb") as f:
+        (n,) = struct.unpack("<Q", f.read(8))
+    # per point: id u64, xyz 3 f64, rgb 3 u8, error f64, track length u64; 8 bytes per track element
+    expected = 8 + 51 * n + 8 * n_obs
+    if size != expected:
+        what = "truncated" if size < expected else "longer than expected"
+        raise SceneError(f"{path}: file is {what} ({size} bytes, {expected} expected for {n} points "
+                         f"and {n_obs} observations in images.bin); it may be corrupt")
+
+
+def _diagnose_text(model_dir: Path) -> str | None:
+    """After pycolmap failed on a text model, find the first malformed line (error path only)."""
+    def floats(tokens):
+        try:
+            [float(t) for t in tokens]
+            return True
+        except ValueError:
+            return False
+
+    for name in _MODEL_FILES:
+        path = model_dir / f"{name}.txt"
+        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+        content = [(i + 1, ln.split()) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
+        if name == "cameras":
+            for no, tok in content:
+                if len(tok) < 5 or not tok[0].isdigit() or not floats(tok[2:]):
+                    return f"{path}: line {no} is not a camera (CAMERA_ID MODEL WIDTH HEIGHT PARAMS[])"
+        elif name == "images":
+            for k, (no, tok) in enumerate(content[::2]):
+                if len(tok) < 10 or not floats(tok[:9]):
+                    return f"{path}: line {no} is not an image (IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME)"
+        else:
+            for no, tok in content:
+                if len(tok) < 8 or not floats(tok) or (len(tok) - 8) % 2:
+                    return f"{path}: line {no} is not a 3D point (POINT3D_ID X Y Z R G B ERROR TRACK[])"
+    return None
+
+
+def read_reconstruction(model_dir: str | os.PathLike):
+    """Read a COLMAP model with pycolmap after checking its files. Returns pycolmap.Reconstruction."""
+    import pycolmap
+
+    model_dir = Path(model_dir)
+    ext = _model_format(model_dir)
+    if ext == ".bin":
+        _check_cameras_bin(model_dir / "cameras.bin")
+        n_obs = _check_images_bin(model_dir / "images.bin")
+        _check_points_bin(model_dir / "points3D.bin", n_obs)
+    try:
+        rec = pycolmap.Reconstruction(str(model_dir))
+    except Exception as exc:  # pycolmap raises ValueError/MemoryError/RuntimeError
+        where = _diagnose_text(model_dir) if ext == ".txt" else None
+        raise SceneError(where or f"{model_dir}: pycolmap could not read the COLMAP model: {exc}") from exc
+    return rec
+
+
+def _camera_from_pycolmap(image, cam) -> Camera:
+    model = cam.model.name
+    p = [float(v) for v in cam.params]
+    if model == "SIMPLE_PINHOLE":
+        fx = fy = p[0]
+        cx, cy = p[1], p[2]
+    elif model == "PINHOLE":
+        fx, fy, cx, cy = p
+    else:  # only pinhole cameras reach here
+        raise SceneError(f"camera {cam.camera_id} has model {model}, expected a pinhole model")
+    pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+    m = np.asarray(pose.matrix(), dtype=np.float64)
+    return Camera(name=image.name, width=int(cam.width), height=int(cam.height), fx=fx, fy=fy,
+                  cx=cx, cy=cy, R=m[:, :3].copy(), t=m[:, 3].copy(), camera_id=int(cam.camera_id),
+                  image_id=int(image.image_id))
+
+
+def _points_from_reconstruction(rec) -> tuple[np.ndarray, np.ndarray]:
+    """(points (M,3) float32, colours (M,3) uint8) via pycolmap's bulk PLY export (no Python loop)."""
+    from .ply import read_ply_elements
+
+    if rec.num_points3D() == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    with tempfile.TemporaryDirectory(prefix="recgs_pts_") as tmp:
+        path = os.path.join(tmp, "points.ply")
+        rec.export_PLY(path)
+        v = read_ply_elements(path)["vertex"]
+    pts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
+    cols = np.stack([v["red"], v["green"], v["blue"]], axis=1).astype(np.uint8)
+    return pts, cols
+
+
+def _check_images(rec, image_dir: Path) -> None:
+    if not image_dir.is_dir():
+        raise SceneError(f"{image_dir}: image folder does not exist")
+    for image_id in sorted(rec.reg_image_ids()):
+        image = rec.image(image_id)
+        cam = rec.camera(image.camera_id)
+        path = image_dir / image.name
+        try:
+            w, h = image_size(path)
+        except ImageError as exc:
+            raise SceneError(str(exc)) from exc
+        if (w, h) != (cam.width, cam.height):
+            raise SceneError(f"{path}: image is {w}x{h} but its COLMAP camera {cam.camera_id} "
+                             f"is {cam.width}x{cam.height}")
+
+
+def _cache_key(model_dir: Path, image_dir: Path, names: list[str]) -> str:
+    h = hashlib.sha256()
+    h.update(str(image_dir.resolve()).encode())
+    for f in sorted(model_dir.iterdir()):
+        if f.is_file():
+            st = f.stat()
+            h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns}".encode())
+    for n in names:
+        st = (image_dir / n).stat()
+        h.update(f"{n}:{st.st_size}:{st.st_mtime_ns}".encode())
+    return h.hexdigest()[:16]
+
+
+def default_cache_dir(scene_dir: Path) -> Path:
+    """``SCENE/.recgs_cache`` when the scene folder is writable, else a per-user cache folder."""
+    if os.access(scene_dir, os.W_OK):
+        return scene_dir / ".recgs_cache"
+    base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
+    return base / "recgs" / hashlib.sha256(str(scene_dir.resolve()).encode()).hexdigest()[:16]
+
+
+def _undistort(model_dir: Path, image_dir: Path, names: list[str], cache_dir: Path) -> Path:
+    """Undistort into ``cache_dir/undistorted-KEY`` (images/ + sparse/); reuse it when present."""
+    import pycolmap
+
+    key = _cache_key(model_dir, image_dir, names)
+    out = cache_dir / f"undistorted-{key}"
+    if (out / "done").exists():
+        return out
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".undistort-{key}-", dir=cache_dir))
+    try:
+        pycolmap.undistort_images(str(tmp), str(model_dir), str(image_dir), image_names=names)
+        if not (tmp / "sparse").is_dir():
+            raise SceneError(f"{model_dir}: pycolmap's undistortion produced no model in {tmp}")
+        (tmp / "done").write_text(key)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except Exception:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def load_scene(scene_dir: str | os.PathLike, image_dir: str | os.PathLike | None = None,
+               check_images: bool = True, cache_dir: str | os.PathLike | None = None) -> Scene:
+    """Load a COLMAP survey.
+
+    Args:
+        scene_dir: folder with ``images/`` and ``sparse/0`` (or ``sparse/``), or a model folder.
+        image_dir: image folder (default ``scene_dir/images``); e.g. ``scene_dir/clean``.
+        check_images: check that every registered image exists, is readable and has its
+            camera's size (reads headers only).
+        cache_dir: where undistorted images go (default :func:`default_cache_dir`).
+    Raises:
+        SceneError naming the file at fault.
+    """
+    scene_dir = Path(scene_dir)
+    model_dir = find_model_dir(scene_dir)
+    image_dir = Path(image_dir) if image_dir is not None else scene_dir / "images"
+    rec = read_reconstruction(model_dir)
+    cams_file = model_dir / f"cameras{_model_format(model_dir)}"
+    if rec.num_reg_images() == 0:
+        raise SceneError(f"{model_dir / ('images' + _model_format(model_dir))}: the model has no registered images")
+    models = {}
+    for cam_id, cam in rec.cameras.items():
+        name = cam.model.name
+        if name not in PINHOLE_MODELS + UNDISTORTED_MODELS:
+            raise SceneError(f"{cams_file}: camera {cam_id} uses the {name} model, which is not supported "
+                             f"(supported: {', '.join(PINHOLE_MODELS + UNDISTORTED_MODELS)})")
+        models[cam_id] = name
+    if check_images:
+        _check_images(rec, image_dir)
+    names = sorted(rec.image(i).name for i in rec.reg_image_ids())
+    undistorted = any(m in UNDISTORTED_MODELS for m in models.values())
+    if undistorted:
+        cache = Path(cache_dir) if cache_dir is not None else default_cache_dir(scene_dir)
+        out = _undistort(model_dir, image_dir, names, cache)
+        image_dir, model_dir = out / "images", out / "sparse"
+        rec = read_reconstruction(model_dir)
+    by_name = {}
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        by_name[image.name] = _camera_from_pycolmap(image, rec.camera(image.camera_id))
+    cameras = [by_name[n] for n in sorted(by_name)]
+    points, colors = _points_from_reconstruction(rec)
+    if len(points) == 0:
+        raise SceneError(f"{model_dir / ('points3D' + _model_format(model_dir))}: the model has no 3D points; "
+                         "Gaussians are initialised from them")
+    return Scene(scene_dir=scene_dir, model_dir=model_dir, image_dir=image_dir, cameras=cameras,
+                 points=points, colors=colors, undistorted=undistorted)

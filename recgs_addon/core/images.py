@@ -1,0 +1,123 @@
+"""Image reading and writing with OpenImageIO.
+
+Images are returned as float32 arrays of shape (H, W, 3) (RGB; grey is expanded, alpha
+dropped). 8- and 16-bit integer files (PNG, JPEG, TIFF) are normalised to [0, 1]; float
+files (EXR, float TIFF) keep their values.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ImageError
+
+#: File extensions treated as images when listing a folder.
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
+
+
+def _oiio():
+    import OpenImageIO as oiio  # imported lazily: the Blender layer loads without it
+
+    return oiio
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of an image file, read from its header only."""
+    oiio = _oiio()
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: image file is missing")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ImageError(f"{path}: cannot read image ({oiio.geterror() or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        return int(spec.width), int(spec.height)
+    finally:
+        inp.close()
+
+
+def read_image(path: str | os.PathLike, downscale: int = 1) -> np.ndarray:
+    """Read an image as float32 (H, W, 3).
+
+    Args:
+        path: image file (PNG/JPEG/TIFF 8 or 16 bit, EXR, ...).
+        downscale: integer factor >= 1; the image is reduced with OIIO's box-filter resize,
+            which averages exactly the source pixels under each output pixel (area-correct)
+            when the size divides evenly. Output size is round(W / downscale) x round(H / downscale).
+    Returns:
+        (H, W, 3) float32. Values in [0, 1] for integer formats.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: image file is missing")
+    buf = oiio.ImageBuf(str(path))
+    if buf.has_error or buf.spec().width <= 0:
+        raise ImageError(f"{path}: cannot read image ({buf.geterror() or 'unknown format'})")
+    if downscale != 1:
+        if downscale < 1 or int(downscale) != downscale:
+            raise ImageError(f"{path}: downscale must be an integer >= 1, got {downscale}")
+        spec = buf.spec()
+        w = max(1, int(round(spec.width / downscale)))
+        h = max(1, int(round(spec.height / downscale)))
+        roi = oiio.ROI(0, w, 0, h, 0, 1, 0, spec.nchannels)
+        small = oiio.ImageBufAlgo.resize(buf, filtername="box", roi=roi)
+        if small.has_error:
+            raise ImageError(f"{path}: cannot resize image ({small.geterror()})")
+        buf = small
+    pixels = buf.get_pixels(oiio.FLOAT)
+    if pixels is None or buf.has_error:
+        raise ImageError(f"{path}: cannot decode image pixels ({buf.geterror()})")
+    arr = np.asarray(pixels, dtype=np.float32)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.ndim == 4:  # (depth, H, W, C) for volume images: take the first slice
+        arr = arr[0]
+    c = arr.shape[2]
+    if c == 1 or c == 2:  # grey or grey+alpha
+        arr = np.repeat(arr[:, :, :1], 3, axis=2)
+    elif c >= 3:
+        arr = arr[:, :, :3]
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write (H, W, C) float image. PNG/JPEG/TIFF get 8-bit values clipped to [0, 1]
+    (16-bit for .tif); EXR keeps float32 (half is not used so values survive exactly).
+
+    The file is written to a temporary name first and renamed, so a crash never leaves a
+    half-written image under the final name.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim == 2:
+        image = image[:, :, None]
+    h, w, c = image.shape
+    ext = path.suffix.lower()
+    if ext == ".exr":
+        fmt, data = oiio.FLOAT, image
+    elif ext in (".tif", ".tiff"):
+        fmt, data = oiio.UINT16, np.clip(image, 0.0, 1.0)
+    else:
+        fmt, data = oiio.UINT8, np.clip(image, 0.0, 1.0)
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+    out = oiio.ImageOutput.create(str(tmp))
+    if out is None:
+        raise ImageError(f"{path}: cannot write images of this type ({oiio.geterror()})")
+    try:
+        if not out.open(str(tmp), spec):
+            raise ImageError(f"{path}: cannot open for writing ({out.geterror()})")
+        ok = out.write_image(np.ascontiguousarray(data))
+        out.close()
+        if not ok:
+            raise ImageError(f"{path}: writing failed ({out.geterror()})")
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()

@@ -1,0 +1,116 @@
+"""Shared fixtures: synthetic COLMAP surveys written with pycolmap, and a clean bpy session."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+TESTS = Path(__file__).resolve().parent
+if str(TESTS) not in sys.path:
+    sys.path.insert(0, str(TESTS))
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "slow: longer checks; CI runs them when time allows")
+    config.addinivalue_line("markers", "blender: needs the bpy module")
+
+
+def look_at_pose(center, target, up=(0.0, 0.0, 1.0)):
+    """COLMAP world-to-camera (R, t) for a camera at ``center`` looking at ``target``."""
+    center, target, up = (np.asarray(v, dtype=np.float64) for v in (center, target, up))
+    z = target - center
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return R, -R @ center
+
+
+def write_colmap_scene(root, *, model="PINHOLE", params=None, width=64, height=48, n_images=4,
+                       n_points=150, binary=True, names=None, write_images=True, seed=0,
+                       sparse_sub="sparse/0"):
+    """Write a small synthetic survey: ``root/images/*.png`` and a COLMAP model.
+
+    Cameras look down at points scattered over z in [-0.3, 0.3] around the origin from
+    about 3 m above. Every point is observed by every image it projects into.
+    Returns the pycolmap.Reconstruction that was written.
+    """
+    import pycolmap
+
+    from recgs_addon.core.images import write_image
+
+    rng = np.random.default_rng(seed)
+    root = Path(root)
+    if params is None:
+        params = {"PINHOLE": [60.0, 60.0, width / 2, height / 2],
+                  "SIMPLE_PINHOLE": [60.0, width / 2, height / 2],
+                  "SIMPLE_RADIAL": [60.0, width / 2, height / 2, 0.05],
+                  "OPENCV": [60.0, 62.0, width / 2 + 1.5, height / 2 - 1.0, 0.05, -0.01, 0.001, 0.001],
+                  }[model]
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model=model, width=width, height=height, params=params, camera_id=1)
+    rec.add_camera_with_trivial_rig(cam)
+    names = names or [f"img_{i:03d}.png" for i in range(n_images)]
+    pts = np.concatenate([rng.uniform(-1.0, 1.0, (n_points, 2)), rng.uniform(-0.3, 0.3, (n_points, 1))], 1)
+    poses = []
+    for i, name in enumerate(names):
+        c = np.array([-0.4 + 0.8 * i / max(1, len(names) - 1), 0.1 * np.sin(i), 3.0])
+        R, t = look_at_pose(c, [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
+        poses.append(pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
+    obs = [[] for _ in names]
+    for i, pose in enumerate(poses):
+        pc = (np.asarray(pose.matrix())[:, :3] @ pts.T).T + np.asarray(pose.matrix())[:, 3]
+        uv = np.array([cam.img_from_cam(q) for q in pc]).reshape(-1, 2)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+        obs[i] = [(j, uv[j]) for j in np.nonzero(inside)[0]]
+    for i, (name, pose) in enumerate(zip(names, poses)):
+        kp = np.array([o[1] for o in obs[i]], dtype=np.float64).reshape(-1, 2)
+        im = pycolmap.Image(name=name, keypoints=kp, camera_id=1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(im, pose)
+    colors = rng.integers(0, 256, (n_points, 3), dtype=np.uint8)
+    for j in range(n_points):
+        tr = pycolmap.Track()
+        for i in range(len(names)):
+            for k, (jj, _) in enumerate(obs[i]):
+                if jj == j:
+                    tr.add_element(i + 1, k)
+        if tr.length() >= 1:
+            rec.add_point3D(pts[j], tr, colors[j])
+    model_dir = root / sparse_sub
+    model_dir.mkdir(parents=True, exist_ok=True)
+    (rec.write_binary if binary else rec.write_text)(str(model_dir))
+    if write_images:
+        for name in names:
+            img = rng.random((height, width, 3)).astype(np.float32)
+            write_image(root / "images" / name, img)
+    return rec
+
+
+@pytest.fixture
+def colmap_scene(tmp_path):
+    """A small PINHOLE survey in tmp_path/'survey'. Returns (path, reconstruction)."""
+    root = tmp_path / "survey"
+    rec = write_colmap_scene(root)
+    return root, rec
+
+
+@pytest.fixture
+def bpy_session():
+    """A factory-fresh Blender session with the add-on registered (unregistered afterwards)."""
+    bpy = pytest.importorskip("bpy")
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    from recgs_addon import blender as addon
+
+    addon.register()
+    try:
+        yield bpy
+    finally:
+        addon.unregister()
