@@ -1,0 +1,20 @@
+"""The Blender layer: registration of operators and menu entries."""
+from __future__ import annotations
+
+import bpy
+
+from . import operators
+
+
+def register():
+    for cls in operators.classes:
+        bpy.utils.register_class(cls)
+    bpy.types.TOPBAR_MT_file_import.append(operators.menu_import)
+    bpy.types.TOPBAR_MT_file_export.append(operators.menu_export)
+
+
+def unregister():
+    bpy.types.TOPBAR_MT_file_export.remove(operators.menu_export)
+    bpy.types.TOPBAR_MT_file_import.remove(operators.menu_import)
+    for cls in reversed(operators.classes):
+        bpy.utils.unregister_class(cls)

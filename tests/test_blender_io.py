@@ -1,0 +1,217 @@
+"""The Blender layer, headless with the bpy module: import/export operators, cameras, sync."""
+import numpy as np
+import pytest
+
+from conftest import write_colmap_scene
+from test_ply import assert_same, random_gaussians
+
+bpy = pytest.importorskip("bpy")
+pytestmark = pytest.mark.blender
+
+
+def _scene_state(bpy):
+    return (sorted(o.name for o in bpy.data.objects), sorted(c.name for c in bpy.data.collections),
+            len(bpy.data.meshes), len(bpy.data.cameras))
+
+
+@pytest.mark.parametrize("params", [[60.0, 66.0, 30.3, 26.1], [70.0, 58.5, 35.9, 21.2]],
+                         ids=["fy>fx", "fx>fy"])
+def test_blender_cameras_project_like_pycolmap(tmp_path, bpy_session, params):
+    from bpy_extras.object_utils import world_to_camera_view
+    from mathutils import Vector
+
+    from recgs_addon.blender.cameras import apply_render_settings
+
+    root = tmp_path / "s"
+    rec = write_colmap_scene(root, params=params, n_points=120)
+    assert bpy.ops.recgs.import_colmap(directory=str(root)) == {"FINISHED"}
+    scene = bpy.context.scene
+    worst, n = 0.0, 0
+    for image in rec.images.values():
+        cam_obj = bpy.data.objects[image.name]
+        apply_render_settings(scene, cam_obj)
+        W, H = scene.render.resolution_x, scene.render.resolution_y
+        cam = rec.camera(image.camera_id)
+        for p2d in image.points2D:
+            if not p2d.has_point3D():
+                continue
+            xyz = rec.point3D(p2d.point3D_id).xyz
+            ref = cam.img_from_cam(image.cam_from_world() * xyz)
+            v = world_to_camera_view(scene, cam_obj, Vector(xyz))
+            uv = np.array([v.x * W, (1.0 - v.y) * H])
+            worst = max(worst, float(np.abs(uv - ref).max()))
+            n += 1
+    assert n > 100
+    assert worst < 0.05, worst
+
+
+def test_import_colmap_builds_collection(colmap_scene, bpy_session):
+    root, rec = colmap_scene
+    assert bpy.ops.recgs.import_colmap(directory=str(root)) == {"FINISHED"}
+    coll = bpy.data.collections["RecGS survey"]
+    cams = [o for o in coll.all_objects if o.type == "CAMERA"]
+    assert sorted(o.name for o in cams) == sorted(im.name for im in rec.images.values())
+    obj = bpy.context.active_object
+    assert obj.name == "survey Gaussians" and len(obj.data.vertices) == rec.num_points3D()
+    for name in ["f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+                 "rot_0", "rot_1", "rot_2", "rot_3"]:
+        a = obj.data.attributes[name]
+        assert a.domain == "POINT" and a.data_type == "FLOAT"
+    assert bpy.context.scene.camera is not None
+
+
+def test_ply_object_ply_bit_identical(tmp_path, bpy_session):
+    from recgs_addon.core.ply import write_gaussian_ply
+
+    src = tmp_path / "in.ply"
+    write_gaussian_ply(src, random_gaussians(n=300, degree=3))
+    assert bpy.ops.recgs.import_ply(filepath=str(src)) == {"FINISHED"}
+    assert bpy.ops.recgs.export_ply(filepath=str(tmp_path / "out.ply")) == {"FINISHED"}
+    assert (tmp_path / "out.ply").read_bytes() == src.read_bytes()
+
+
+def test_export_opens_in_blenders_own_ply_reader(tmp_path, bpy_session):
+    """Blender's native importer (an independent reader) finds every property by its INRIA name."""
+    from recgs_addon.core.ply import gaussians_to_records, write_gaussian_ply
+
+    g = random_gaussians(n=40, degree=1)
+    src = tmp_path / "in.ply"
+    write_gaussian_ply(src, g)
+    bpy.ops.recgs.import_ply(filepath=str(src))
+    bpy.ops.recgs.export_ply(filepath=str(tmp_path / "out.ply"))
+    bpy.ops.wm.ply_import(filepath=str(tmp_path / "out.ply"))
+    native = bpy.context.selected_objects[0]
+    assert native.name == "out"
+    rec = gaussians_to_records(g)
+    pos = np.empty(3 * len(g), np.float32)
+    native.data.attributes["position"].data.foreach_get("vector", pos)
+    assert np.array_equal(pos.reshape(-1, 3), g.means)
+    for name in rec.dtype.names:
+        if name in ("x", "y", "z", "nx", "ny", "nz"):
+            continue
+        buf = np.empty(len(g), np.float32)
+        native.data.attributes[name].data.foreach_get("value", buf)
+        assert np.array_equal(buf, rec[name]), name
+
+
+def test_edits_are_honoured_by_export(tmp_path, bpy_session):
+    """Deleting vertices (as in Edit Mode) removes exactly those Gaussians, values unchanged."""
+    import bmesh
+
+    from recgs_addon.core.ply import read_gaussian_ply, write_gaussian_ply
+
+    g = random_gaussians(n=100, degree=2)
+    write_gaussian_ply(tmp_path / "in.ply", g)
+    bpy.ops.recgs.import_ply(filepath=str(tmp_path / "in.ply"))
+    obj = bpy.context.active_object
+    bpy.ops.object.mode_set(mode="EDIT")
+    bm = bmesh.from_edit_mesh(obj.data)
+    bm.verts.ensure_lookup_table()
+    drop = [v for v in bm.verts if v.index % 2 == 0]
+    bmesh.ops.delete(bm, geom=drop, context="VERTS")
+    bmesh.update_edit_mesh(obj.data)
+    bpy.ops.recgs.export_ply(filepath=str(tmp_path / "out.ply"))  # still in Edit Mode
+    bpy.ops.object.mode_set(mode="OBJECT")
+    assert_same(g.subset(np.arange(100) % 2 == 1), read_gaussian_ply(tmp_path / "out.ply"))
+
+
+def test_export_bakes_similarity_transform(tmp_path, bpy_session):
+    """Exported moved/rotated/scaled Gaussians render like the unmoved ones from the moved camera."""
+    from mathutils import Euler, Matrix
+
+    from recgs_addon.core.gaussians import GaussianSet
+    from recgs_addon.core.ply import read_gaussian_ply, write_gaussian_ply
+    from reference_render import reference_render
+
+    rng = np.random.default_rng(4)
+    n = 40
+    g = GaussianSet(np.concatenate([rng.uniform(-0.6, 0.6, (n, 2)), rng.uniform(2.5, 3.5, (n, 1))], 1),
+                    np.log(rng.uniform(0.03, 0.15, (n, 3))), rng.normal(size=(n, 4)),
+                    rng.normal(1.0, 1.0, n), rng.normal(0.0, 0.4, (n, 16, 3)))
+    write_gaussian_ply(tmp_path / "in.ply", g)
+    bpy.ops.recgs.import_ply(filepath=str(tmp_path / "in.ply"))
+    obj = bpy.context.active_object
+    s = 1.7
+    M = Matrix.Translation((0.4, -1.2, 2.0)) @ Euler((0.3, -0.5, 1.1)).to_matrix().to_4x4() @ Matrix.Scale(s, 4)
+    obj.matrix_world = M
+    bpy.ops.recgs.export_ply(filepath=str(tmp_path / "moved.ply"))
+    moved = read_gaussian_ply(tmp_path / "moved.ply")
+
+    K = np.array([[40.0, 0, 17.3], [0, 44.0, 13.1], [0, 0, 1]])
+    view = np.eye(4)
+    Mn = np.array(M, dtype=np.float64)
+    Rm = Mn[:3, :3] / s
+    view2 = np.eye(4)  # the camera moved with the object: x_cam' = s x_cam
+    view2[:3, :3] = view[:3, :3] @ Rm.T
+    view2[:3, 3] = s * view[:3, 3] - view[:3, :3] @ Rm.T @ Mn[:3, 3]
+    args = dict(K=K, width=36, height=28, near=0.01)
+    a = reference_render(g.means, g.log_scales, g.quats, g.logit_opacities, g.sh, view, **args)
+    b = reference_render(moved.means, moved.log_scales, moved.quats, moved.logit_opacities, moved.sh,
+                         view2, **args)
+    assert a["alpha"].max() > 0.5  # the scene is in view
+    assert np.abs(a["rgb"] - b["rgb"]).max() < 2e-4
+    assert np.abs(s * a["depth"] - b["depth"]).max() < 1e-3
+
+
+def test_export_refuses_non_uniform_scale(tmp_path, bpy_session):
+    from recgs_addon.core.ply import write_gaussian_ply
+
+    write_gaussian_ply(tmp_path / "in.ply", random_gaussians(n=10, degree=1))
+    bpy.ops.recgs.import_ply(filepath=str(tmp_path / "in.ply"))
+    bpy.context.active_object.scale = (1.0, 2.0, 1.0)
+    with pytest.raises(RuntimeError, match="non-uniform scale"):
+        bpy.ops.recgs.export_ply(filepath=str(tmp_path / "out.ply"))
+    assert not (tmp_path / "out.ply").exists()
+
+
+def test_export_without_gaussian_object_reports(tmp_path, bpy_session):
+    bpy.ops.mesh.primitive_cube_add()
+    with pytest.raises(RuntimeError, match="Select a Gaussian object"):
+        bpy.ops.recgs.export_ply(filepath=str(tmp_path / "out.ply"))
+
+
+BAD_INPUTS = {
+    "missing cameras.bin": lambda r: (r / "sparse/0/cameras.bin").unlink(),
+    "truncated images.bin": lambda r: (r / "sparse/0/images.bin").write_bytes(
+        (r / "sparse/0/images.bin").read_bytes()[:100]),
+    "truncated points3D.bin": lambda r: (r / "sparse/0/points3D.bin").write_bytes(
+        (r / "sparse/0/points3D.bin").read_bytes()[:-9]),
+    "image missing": lambda r: (r / "images/img_001.png").unlink(),
+    "unreadable image": lambda r: (r / "images/img_001.png").write_bytes(b"nope"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_colmap_input_reports_and_leaves_scene(colmap_scene, bpy_session, case):
+    root, _ = colmap_scene
+    bpy.ops.mesh.primitive_cube_add()
+    before = _scene_state(bpy)
+    BAD_INPUTS[case](root)
+    with pytest.raises(RuntimeError, match=str(root)):
+        bpy.ops.recgs.import_colmap(directory=str(root))
+    assert _scene_state(bpy) == before
+
+
+def test_bad_ply_reports_and_leaves_scene(tmp_path, bpy_session):
+    p = tmp_path / "nuage de points é.ply"
+    p.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                  b"property float z\nend_header\n0 0 0\n")
+    before = _scene_state(bpy)
+    with pytest.raises(RuntimeError, match="nuage de points é.ply: not a 3D Gaussian Splatting PLY"):
+        bpy.ops.recgs.import_ply(filepath=str(p))
+    assert _scene_state(bpy) == before
+
+
+def test_ply_with_nan_rows_warns_and_imports_rest(tmp_path, bpy_session):
+    from recgs_addon.core.ply import write_gaussian_ply
+
+    g = random_gaussians(n=10, degree=0)
+    g.log_scales[3, 1] = np.nan
+    write_gaussian_ply(tmp_path / "nan.ply", g)
+    assert bpy.ops.recgs.import_ply(filepath=str(tmp_path / "nan.ply")) == {"FINISHED"}
+    assert len(bpy.context.active_object.data.vertices) == 9
+
+
+def test_import_colmap_without_folder_reports(bpy_session):
+    with pytest.raises(RuntimeError, match="Choose a scene folder"):
+        bpy.ops.recgs.import_colmap(directory="")
