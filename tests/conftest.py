@@ -15,11 +15,6 @@ if str(TESTS) not in sys.path:
     sys.path.insert(0, str(TESTS))
 
 
-def pytest_configure(config):
-    config.addinivalue_line("markers", "slow: longer checks; CI runs them when time allows")
-    config.addinivalue_line("markers", "blender: needs the bpy module")
-
-
 def look_at_pose(center, target, up=(0.0, 0.0, 1.0)):
     """COLMAP world-to-camera (R, t) for a camera at ``center`` looking at ``target``."""
     center, target, up = (np.asarray(v, dtype=np.float64) for v in (center, target, up))

@@ -78,6 +78,8 @@ class RECGS_OT_import_colmap(bpy.types.Operator):
         obj = gobj.create_gaussian_object(f"{name} Gaussians", g, coll)
         obj["recgs_scene_dir"] = str(scene_dir)
         obj["recgs_image_dir"] = str(image_dir)
+        if survey.undistorted:
+            obj["recgs_undistorted_dir"] = str(survey.image_dir)
         bcams.apply_render_settings(context.scene, cam_objs[0])
         for o in context.view_layer.objects:
             o.select_set(False)

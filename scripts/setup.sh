@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# Set up RecGS on a fresh Debian/Ubuntu machine: system libraries Blender needs (installed
+# with apt-get when missing and we are root or have sudo), then a virtual environment in
+# .venv with the pinned requirements. Safe to run again: it only does what is missing.
+#   bash scripts/setup.sh          runtime dependencies
+#   bash scripts/setup.sh --dev    plus the test tools
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DEV=0
+[ "${1:-}" = "--dev" ] && DEV=1
+
+# Libraries `import bpy` needs, plus EGL/Mesa for EEVEE without a display.
+DEB_PKGS="libx11-6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libsm6 libgl1 libegl1 libgl1-mesa-dri"
+missing=""
+for p in $DEB_PKGS; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing="$missing $p"
+done
+if [ -n "$missing" ]; then
+  echo "setup: installing system libraries:$missing"
+  SUDO=""
+  [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  if [ -n "$SUDO" ] && ! command -v sudo >/dev/null; then
+    echo "setup: please install these Debian packages as root:$missing" >&2
+    exit 1
+  fi
+  export DEBIAN_FRONTEND=noninteractive
+  $SUDO apt-get update -qq
+  $SUDO apt-get install -y -qq --no-install-recommends $missing >/dev/null
+fi
+
+PY="${PYTHON:-}"
+if [ -z "$PY" ]; then
+  for cand in python3.11 python3; do
+    if command -v "$cand" >/dev/null && "$cand" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
+      PY="$cand"; break
+    fi
+  done
+fi
+if [ -z "$PY" ]; then
+  echo "setup: Python 3.11 is required (bpy 5.0.1 is built for it); set PYTHON=/path/to/python3.11" >&2
+  exit 1
+fi
+
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+REQ=requirements.txt
+[ "$DEV" = 1 ] && REQ=requirements-dev.txt
+stamp=".venv/.recgs-$(cat requirements*.txt | sha256sum | cut -c1-16)-$DEV"
+if [ ! -e "$stamp" ]; then
+  echo "setup: installing Python packages from $REQ into .venv"
+  .venv/bin/python -m pip install -q --disable-pip-version-check -r "$REQ" 2>&1 \
+    | grep -v "is ignored: it is neither a file nor a directory" || true
+  .venv/bin/python -c "import bpy, numpy, torch, pycolmap, OpenImageIO, scipy" \
+    || { echo "setup: the Python packages did not install correctly" >&2; exit 1; }
+  touch "$stamp"
+fi
+echo "setup: ready (.venv/bin/python)"

@@ -1,0 +1,56 @@
+"""The extension zip builds with Blender's own builder and installs into a fresh session."""
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT, write_colmap_scene
+
+bpy = pytest.importorskip("bpy")
+pytestmark = pytest.mark.blender
+
+
+def blender_ext_cli() -> Path:
+    """Blender's extension command line (``blender --command extension`` in a full Blender)."""
+    path = Path(bpy.utils.system_resource("SCRIPTS")) / "addons_core/bl_pkg/cli/blender_ext.py"
+    assert path.is_file(), f"{path} not found"
+    return path
+
+
+@pytest.fixture(scope="module")
+def extension_zip(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ext")
+    r = subprocess.run([sys.executable, str(blender_ext_cli()), "build", "--source-dir", str(ROOT),
+                        "--output-dir", str(out)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    zips = list(out.glob("recgs-*.zip"))
+    assert len(zips) == 1, r.stdout
+    return zips[0]
+
+
+def test_manifest_validates():
+    r = subprocess.run([sys.executable, str(blender_ext_cli()), "validate", str(ROOT)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_zip_holds_the_addon_only(extension_zip):
+    names = zipfile.ZipFile(extension_zip).namelist()
+    assert "blender_manifest.toml" in names and "__init__.py" in names
+    assert "recgs_addon/core/ply.py" in names and "recgs_addon/blender/operators.py" in names
+    for banned in ("tests/", "docs/", "data/", ".ci/", "tools/", "benchmarks/", ".venv/", "scripts/"):
+        assert not any(n.startswith(banned) for n in names), banned
+    assert not any("__pycache__" in n for n in names)
+
+
+def test_install_register_unregister_twice(extension_zip, tmp_path):
+    scene = tmp_path / "survey"
+    write_colmap_scene(scene)
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp_path / "user"))
+    r = subprocess.run([sys.executable, str(ROOT / "tests/blender_scripts/install_extension.py"),
+                        str(extension_zip), str(scene)],
+                       capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    assert r.returncode == 0 and "EXTENSION-OK" in r.stdout, r.stdout[-3000:] + r.stderr[-3000:]
