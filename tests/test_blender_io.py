@@ -170,26 +170,64 @@ def test_export_without_gaussian_object_reports(tmp_path, bpy_session):
         bpy.ops.recgs.export_ply(filepath=str(tmp_path / "out.ply"))
 
 
-BAD_INPUTS = {
-    "missing cameras.bin": lambda r: (r / "sparse/0/cameras.bin").unlink(),
-    "truncated images.bin": lambda r: (r / "sparse/0/images.bin").write_bytes(
-        (r / "sparse/0/images.bin").read_bytes()[:100]),
-    "truncated points3D.bin": lambda r: (r / "sparse/0/points3D.bin").write_bytes(
-        (r / "sparse/0/points3D.bin").read_bytes()[:-9]),
-    "image missing": lambda r: (r / "images/img_001.png").unlink(),
-    "unreadable image": lambda r: (r / "images/img_001.png").write_bytes(b"nope"),
+def _garble(path):
+    path.write_text("# header\nthis is not a colmap line\n")
+
+
+def _resize_image(path):
+    from recgs_addon.core.images import write_image
+
+    write_image(path, np.zeros((40, 50, 3), np.float32))
+
+
+def _unsupported_model(root):
+    p = root / "sparse/0/cameras.txt"
+    p.write_text("1 EQUIRECTANGULAR 64 48 64 48\n")
+
+
+BAD_INPUTS = {  # case -> (text model?, scene kwargs, how to break it, expected message)
+    "missing cameras.bin": (False, {}, lambda r: (r / "sparse/0/cameras.bin").unlink(), "cameras.bin: file is missing"),
+    "missing images.bin": (False, {}, lambda r: (r / "sparse/0/images.bin").unlink(), "images.bin: file is missing"),
+    "missing points3D.bin": (False, {}, lambda r: (r / "sparse/0/points3D.bin").unlink(), "points3D.bin: file is missing"),
+    "truncated cameras.bin": (False, {}, lambda r: (r / "sparse/0/cameras.bin").write_bytes(
+        (r / "sparse/0/cameras.bin").read_bytes()[:40]), "cameras.bin: file is truncated"),
+    "truncated images.bin": (False, {}, lambda r: (r / "sparse/0/images.bin").write_bytes(
+        (r / "sparse/0/images.bin").read_bytes()[:100]), "images.bin: file is truncated"),
+    "truncated points3D.bin": (False, {}, lambda r: (r / "sparse/0/points3D.bin").write_bytes(
+        (r / "sparse/0/points3D.bin").read_bytes()[:-9]), "points3D.bin: file is truncated"),
+    "garbage images.txt": (True, {}, lambda r: _garble(r / "sparse/0/images.txt"), "images.txt"),
+    "image missing": (False, {}, lambda r: (r / "images/img_001.png").unlink(), "img_001.png: image file is missing"),
+    "unreadable image": (False, {}, lambda r: (r / "images/img_001.png").write_bytes(b"nope"),
+                         "img_001.png: cannot read image"),
+    "image size disagrees": (False, {}, lambda r: _resize_image(r / "images/img_002.png"),
+                             "img_002.png: image is 50x40 but its COLMAP camera 1 is 64x48"),
+    "unsupported camera model": (True, {}, _unsupported_model, "uses the EQUIRECTANGULAR model"),
+    "empty point cloud": (False, {"n_points": 0}, lambda r: None, "the model has no 3D points"),
 }
 
 
 @pytest.mark.parametrize("case", sorted(BAD_INPUTS))
-def test_bad_colmap_input_reports_and_leaves_scene(colmap_scene, bpy_session, case):
-    root, _ = colmap_scene
+def test_bad_colmap_input_reports_and_leaves_scene(tmp_path, bpy_session, case):
+    text, kwargs, breaker, message = BAD_INPUTS[case]
+    root = tmp_path / "relevé 1"
+    write_colmap_scene(root, binary=not text, **kwargs)
     bpy.ops.mesh.primitive_cube_add()
     before = _scene_state(bpy)
-    BAD_INPUTS[case](root)
-    with pytest.raises(RuntimeError, match=str(root)):
+    breaker(root)
+    with pytest.raises(RuntimeError, match=message) as info:
         bpy.ops.recgs.import_colmap(directory=str(root))
+    assert str(root) in str(info.value)
     assert _scene_state(bpy) == before
+
+
+def test_import_colmap_non_ascii_path_with_spaces(tmp_path, bpy_session):
+    root = tmp_path / "fonds marins ñ é"
+    write_colmap_scene(root, names=["vue ß 1.png", "vue ß 2.png"])
+    assert bpy.ops.recgs.import_colmap(directory=str(root)) == {"FINISHED"}
+    assert "vue ß 1.png" in bpy.data.objects
+    out = tmp_path / "export é.ply"
+    bpy.ops.recgs.export_ply(filepath=str(out))
+    assert out.exists()
 
 
 def test_bad_ply_reports_and_leaves_scene(tmp_path, bpy_session):
