@@ -25,6 +25,14 @@ def _missing_dependency(exc: ImportError) -> str:
             "See the README (Installing the dependencies).")
 
 
+def _make_active(context, obj) -> None:
+    """Select ``obj`` alone and make it the active object."""
+    for o in context.view_layer.objects:
+        o.select_set(False)
+    obj.select_set(True)
+    context.view_layer.objects.active = obj
+
+
 def _new_collection(context, name: str):
     coll = bpy.data.collections.new(name)
     context.scene.collection.children.link(coll)
@@ -81,10 +89,7 @@ class RECGS_OT_import_colmap(bpy.types.Operator):
         if survey.undistorted:
             obj["recgs_undistorted_dir"] = str(survey.image_dir)
         bcams.apply_render_settings(context.scene, cam_objs[0])
-        for o in context.view_layer.objects:
-            o.select_set(False)
-        obj.select_set(True)
-        context.view_layer.objects.active = obj
+        _make_active(context, obj)
         msg = (f"Imported {len(cam_objs)} cameras and {len(g)} Gaussians from {scene_dir} "
                f"in {time.perf_counter() - t0:.2f} s")
         if survey.undistorted:
@@ -118,10 +123,7 @@ class RECGS_OT_import_ply(bpy.types.Operator, ImportHelper):
             self.report({"WARNING"}, str(w.message))
         obj = gobj.create_gaussian_object(path.stem, g, context.collection)
         obj["recgs_source_ply"] = str(path)
-        for o in context.view_layer.objects:
-            o.select_set(False)
-        obj.select_set(True)
-        context.view_layer.objects.active = obj
+        _make_active(context, obj)
         self.report({"INFO"}, f"Imported {len(g)} Gaussians (SH degree {g.sh_degree}) from {path}")
         return {"FINISHED"}
 
