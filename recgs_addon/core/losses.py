@@ -1,0 +1,70 @@
+"""Image losses and metrics (torch): L1, SSIM (INRIA's definition), PSNR.
+
+Images are (H, W, 3) or (B, 3, H, W) float tensors in [0, 1] (HWC inputs are converted).
+SSIM follows INRIA 3DGS / Wang et al. 2004: an 11x11 Gaussian window with sigma 1.5,
+C1 = 0.01^2, C2 = 0.03^2, zero padding of 5 px so the map has the image's size, averaged
+over pixels and channels.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_C1 = 0.01 ** 2
+SSIM_C2 = 0.03 ** 2
+#: Weight of (1 - SSIM) in the training loss (INRIA's lambda_dssim).
+LAMBDA_DSSIM = 0.2
+
+
+def _bchw(img: torch.Tensor) -> torch.Tensor:
+    if img.dim() == 3:  # (H, W, C)
+        return img.permute(2, 0, 1).unsqueeze(0)
+    return img
+
+
+def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA, dtype=torch.float32):
+    """(size,) normalised 1D Gaussian."""
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    g = torch.exp(-(x * x) / (2 * sigma * sigma))
+    return (g / g.sum()).to(dtype)
+
+
+def _blur(x: torch.Tensor, w1d: torch.Tensor) -> torch.Tensor:
+    """Separable Gaussian blur of (B, C, H, W) with zero padding (same as INRIA's 2D conv)."""
+    c = x.shape[1]
+    k = w1d.numel()
+    x = F.conv2d(x, w1d.view(1, 1, 1, k).expand(c, 1, 1, k), padding=(0, k // 2), groups=c)
+    return F.conv2d(x, w1d.view(1, 1, k, 1).expand(c, 1, k, 1), padding=(k // 2, 0), groups=c)
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM of two images (differentiable in both)."""
+    a, b = _bchw(a), _bchw(b)
+    w = gaussian_window(dtype=a.dtype).to(a.device)
+    mu_a, mu_b = _blur(a, w), _blur(b, w)
+    mu_aa, mu_bb, mu_ab = mu_a * mu_a, mu_b * mu_b, mu_a * mu_b
+    var_a = _blur(a * a, w) - mu_aa
+    var_b = _blur(b * b, w) - mu_bb
+    cov = _blur(a * b, w) - mu_ab
+    num = (2 * mu_ab + SSIM_C1) * (2 * cov + SSIM_C2)
+    den = (mu_aa + mu_bb + SSIM_C1) * (var_a + var_b + SSIM_C2)
+    return (num / den).mean()
+
+
+def l1(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return (a - b).abs().mean()
+
+
+def training_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = LAMBDA_DSSIM):
+    """(1 - lambda) L1 + lambda (1 - SSIM), as INRIA 3DGS and RecGS."""
+    return (1.0 - lambda_dssim) * l1(render, target) + lambda_dssim * (1.0 - ssim(render, target))
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    """PSNR in dB for images in [0, 1] (inf for identical images)."""
+    mse = float(((a.double() - b.double()) ** 2).mean())
+    return math.inf if mse == 0 else -10.0 * math.log10(mse)

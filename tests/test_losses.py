@@ -1,0 +1,68 @@
+import math
+
+import numpy as np
+import torch
+
+from recgs_addon.core.losses import l1, psnr, ssim, training_loss
+
+
+def ssim_reference(a, b):
+    """Plain float64 SSIM: 11x11 Gaussian window (sigma 1.5), zero padding, per channel."""
+    x = np.arange(11) - 5.0
+    g = np.exp(-x * x / (2 * 1.5 ** 2))
+    g /= g.sum()
+    win = np.outer(g, g)
+    H, W, C = a.shape
+
+    def blur(img):
+        p = np.pad(img, ((5, 5), (5, 5)))
+        out = np.zeros((H, W))
+        for dy in range(11):
+            for dx in range(11):
+                out += win[dy, dx] * p[dy:dy + H, dx:dx + W]
+        return out
+
+    vals = []
+    for c in range(C):
+        x_, y_ = a[:, :, c], b[:, :, c]
+        ma, mb = blur(x_), blur(y_)
+        va = blur(x_ * x_) - ma * ma
+        vb = blur(y_ * y_) - mb * mb
+        cov = blur(x_ * y_) - ma * mb
+        m = ((2 * ma * mb + 1e-4) * (2 * cov + 9e-4)) / ((ma * ma + mb * mb + 1e-4) * (va + vb + 9e-4))
+        vals.append(m)
+    return float(np.mean(vals))
+
+
+def test_ssim_matches_float64_reference():
+    rng = np.random.default_rng(0)
+    a = rng.random((23, 31, 3))
+    b = np.clip(a + rng.normal(0, 0.1, a.shape), 0, 1)
+    ref = ssim_reference(a, b)
+    got = float(ssim(torch.tensor(a, dtype=torch.float32), torch.tensor(b, dtype=torch.float32)))
+    assert abs(got - ref) < 1e-5
+    assert abs(float(ssim(torch.tensor(a), torch.tensor(a))) - 1.0) < 1e-12
+
+
+def test_ssim_and_loss_gradients_match_finite_differences():
+    rng = np.random.default_rng(1)
+    a = torch.tensor(rng.random((7, 8, 3)), dtype=torch.float64, requires_grad=True)
+    b = torch.tensor(rng.random((7, 8, 3)), dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda x: ssim(x, b), (a,), eps=1e-6, atol=1e-8)
+    # L1 is not differentiable at 0; the random images keep |a - b| well away from it
+    assert torch.autograd.gradcheck(lambda x: training_loss(x, b), (a,), eps=1e-6, atol=1e-8)
+
+
+def test_psnr_and_l1():
+    a = torch.zeros(4, 4, 3)
+    b = torch.full((4, 4, 3), 0.1)
+    assert abs(psnr(a, b) - 20.0) < 1e-5  # 0.1 is not exact in float32
+    assert psnr(a, a) == math.inf
+    assert abs(float(l1(a, b)) - 0.1) < 1e-7
+
+
+def test_tiny_images_are_finite():
+    a = torch.rand(1, 1, 3, requires_grad=True)
+    loss = training_loss(a, torch.rand(1, 1, 3))
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(a.grad).all()
