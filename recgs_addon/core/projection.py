@@ -1,0 +1,259 @@
+"""Per-Gaussian part of the renderer: 3D Gaussians -> screen-space ellipses (INRIA 3DGS maths).
+
+Everything here is per Gaussian (no pixels), runs in float64 whatever the parameter dtype
+(the cost is small next to the per-pixel compositing, and it keeps the 2D covariance of a
+1e5:1 needle or a 1e3 m blob accurate), and is differentiated by torch autograd.
+
+Conventions are those of :mod:`recgs_addon.core.cameras`: ``viewmat`` is world-to-camera with
+OpenCV axes (x right, y down, z forward); pixel (i, j) is centred at (i + 0.5, j + 0.5) in the
+coordinates ``u = fx x / z + cx``.
+
+Screen-space ellipses are handed to the compositor as the Cholesky factor of the conic
+(inverse 2D covariance) instead of the conic itself: with ``cov2d = [[A, B], [B, C]]``
+(dilated) and ``D = det(cov2d)``, the Mahalanobis distance is
+
+    d^T cov2d^-1 d = (l11 dx + l21 dy)^2 + (l22 dy)^2,
+    l11 = sqrt(C / D),  l21 = -B / sqrt(C D),  l22 = 1 / sqrt(C).
+
+This is the same number as INRIA's ``conic.x dx^2 + 2 conic.y dx dy + conic.z dy^2`` but is
+evaluated without the quadratic cancellation that makes float32 lose the shape of very
+elongated Gaussians, and is smooth everywhere (C >= 0.3, D >= 0.09 thanks to the dilation).
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+#: Low-pass dilation added to the 2D covariance (pixels^2), INRIA/EWA: every splat covers at
+#: least about one pixel, so that sub-pixel Gaussians do not alias.
+COV2D_DILATION = 0.3
+#: INRIA clamps x/z and y/z in the projection Jacobian to 1.3 x tan(fov/2): Gaussians far
+#: outside the frustum would otherwise get absurdly stretched screen footprints.
+FRUSTUM_CLAMP = 1.3
+#: Contributions with alpha below this are skipped (8-bit colour resolution), INRIA.
+ALPHA_MIN = 1.0 / 255.0
+#: Quaternions are normalised by sqrt(|q|^2 + QUAT_EPS^2) (in float64): smooth everywhere
+#: (finite gradients even for q = 0, which gives the identity) and equal to q / |q| to 1e-10
+#: relative for |q| >= 1e-15.
+QUAT_EPS = 1e-20
+#: Floor for det(cov)/det(cov + 0.3 I) under the square root of the antialiasing factor
+#: (d sqrt(x)/dx is infinite at 0).
+AA_RATIO_EPS = 1e-30
+#: Relative and absolute margins added to the opacity-aware radius before binning into tiles,
+#: so that float32 round-off in the compositor can never see a pixel the binning left out.
+BIN_MARGIN_REL = 1e-4
+BIN_MARGIN_ABS = 1e-3
+#: Largest radius reported (pixels); keeps the int32 cast finite for absurd Gaussians.
+MAX_RADIUS = 2 ** 30
+
+
+class Projection(NamedTuple):
+    """Screen-space Gaussians that survived culling, in compositing (depth) order.
+
+    Attributes:
+        ids: (V,) int64 indices of visible Gaussians, sorted by camera-space depth, ties broken
+            by index (stable), so the order is deterministic.
+        means2d: (V, 2) float64 pixel coordinates of the projected centres (differentiable).
+        chol: (V, 3) float64 (l11, l21, l22), Cholesky factor of the conic (differentiable).
+        opacity: (V,) float64 opacity in (0, 1), times the antialiasing factor (differentiable).
+        depth: (V,) float64 camera-space z in scene units (differentiable).
+        radii: (N,) int32 opacity-aware screen radius in pixels for every Gaussian, 0 = culled.
+        bbox: (V, 4) int64 inclusive pixel ranges (x0, x1, y0, y1) inside the image that can
+            receive alpha >= 1/255 from the Gaussian (with a safety margin).
+        cov2d: (V, 4) float64 dilated 2D covariance (A, B, C) = ([0,0], [0,1], [1,1]) and its
+            determinant D (computed without cancellation), detached.
+        extent: (V,) float64 squared Mahalanobis radius of the drawn region, 2 ln(255 o) plus
+            the binning margin, detached (pixels with d^T cov2d^-1 d > extent get alpha < 1/255).
+    """
+
+    ids: torch.Tensor
+    means2d: torch.Tensor
+    chol: torch.Tensor
+    opacity: torch.Tensor
+    depth: torch.Tensor
+    radii: torch.Tensor
+    bbox: torch.Tensor
+    cov2d: torch.Tensor
+    extent: torch.Tensor
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """(N, 4) quaternions (w, x, y, z), any norm -> (N, 3, 3) rotation matrices.
+
+    Normalised by sqrt(|q|^2 + QUAT_EPS^2); a zero quaternion gives the identity (finite
+    gradients).
+    """
+    q = quats * torch.rsqrt((quats * quats).sum(-1, keepdim=True) + QUAT_EPS ** 2)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(quats.shape[:-1] + (3, 3))
+
+
+def _project_rows(means, log_scales, quats, logit_opacities, viewmat, K, width, height, near,
+                  antialiased, extras=False):
+    """Float64 EWA projection of some Gaussians. Returns a dict of (n,)-shaped tensors.
+
+    Rows with z <= near get a harmless stand-in depth so that no inf/NaN enters the graph;
+    the caller culls them via ``in_front``. ``extras`` adds lam_max and the 2D covariance
+    (A, B, C, D) for culling and binning: only for the no-grad pass (sqrt(0) in lam_max of a
+    round Gaussian has no finite derivative, and a compiled backward differentiates every
+    output, used or not).
+    """
+    Rw = viewmat[:3, :3]
+    tw = viewmat[:3, 3]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    pc = means @ Rw.T + tw
+    x, y, z = pc.unbind(-1)
+    in_front = z > near
+    zs = torch.where(in_front, z, torch.ones_like(z))
+    inv_z = 1.0 / zs
+    u = fx * x * inv_z + cx
+    v = fy * y * inv_z + cy
+    # Jacobian of the perspective projection at the (frustum-clamped) centre, INRIA style:
+    # limits from tan(fov/2) = 0.5 W / fx; clamping x/z (zero gradient outside) then
+    # multiplying by z is the same as clamping x/z directly.
+    limx = FRUSTUM_CLAMP * 0.5 * width / fx
+    limy = FRUSTUM_CLAMP * 0.5 * height / fy
+    xz = torch.clamp(x * inv_z, -limx, limx)
+    yz = torch.clamp(y * inv_z, -limy, limy)
+    # T = J @ Rw, rows (2, 3): J = [[fx/z, 0, -fx xz/z], [0, fy/z, -fy yz/z]]
+    t0 = (fx * inv_z)[:, None] * (Rw[0] - xz[:, None] * Rw[2])
+    t1 = (fy * inv_z)[:, None] * (Rw[1] - yz[:, None] * Rw[2])
+    # Sigma = M M^T with M = R(q) diag(exp(s)); cov2d = (T M)(T M)^T.
+    M = quat_to_rotmat(quats) * torch.exp(log_scales)[:, None, :]
+    # (T M) rows as broadcast sums (fuses under torch.compile; a batched 1x3 @ 3x3 does not).
+    a_row = (t0.unsqueeze(-1) * M).sum(1)
+    b_row = (t1.unsqueeze(-1) * M).sum(1)
+    A = (a_row * a_row).sum(-1)
+    B = (a_row * b_row).sum(-1)
+    C = (b_row * b_row).sum(-1)
+    # det(cov2d) before dilation as |a x b|^2 (Lagrange identity): >= 0 by construction and
+    # free of the A C - B^2 cancellation for needle-like Gaussians.
+    det0 = (torch.linalg.cross(a_row, b_row) ** 2).sum(-1)
+    Ad = A + COV2D_DILATION
+    Cd = C + COV2D_DILATION
+    det = det0 + COV2D_DILATION * (A + C) + COV2D_DILATION ** 2
+    opacity = torch.sigmoid(logit_opacities)
+    if antialiased:
+        # Mip-Splatting / gsplat "antialiased": keep the splat's integrated energy.
+        opacity = opacity * torch.sqrt(torch.clamp_min(det0 / det, AA_RATIO_EPS))
+    sqrt_cd = torch.sqrt(Cd)
+    sqrt_det = torch.sqrt(det)
+    l11 = sqrt_cd / sqrt_det
+    l21 = -B / (sqrt_cd * sqrt_det)
+    l22 = 1.0 / sqrt_cd
+    out = dict(in_front=in_front, z=zs, u=u, v=v, l11=l11, l21=l21, l22=l22, opacity=opacity)
+    if extras:
+        half_diff = 0.5 * (Ad - Cd)
+        lam_max = 0.5 * (Ad + Cd) + torch.sqrt(half_diff * half_diff + B * B)
+        out.update(lam_max=lam_max, A=Ad, B=B, C=Cd, D=det)
+    return out
+
+
+def _cull_rows(means, log_scales, quats, logit_opacities, viewmat, K, width, height, near,
+               antialiased):
+    """No-grad first pass over all Gaussians: projection, culling and screen extent.
+
+    Returns (N, 14) float64 columns: ok (1 = drawn), z, u, v, A, B, C, D (dilated cov2d and
+    its determinant), extent (binning threshold on d^T cov^-1 d), x0, x1, y0, y1 (inclusive
+    pixel range, clipped to the image), radius (opacity-aware, pixels, exact).
+    """
+    p = _project_rows(means, log_scales, quats, logit_opacities, viewmat, K, width, height,
+                      near, antialiased, extras=True)
+    o = p["opacity"]
+    # Opacity-aware extent: o exp(-r^2 / (2 lambda_max)) = 1/255 on the major axis.
+    log_term = torch.clamp_min(torch.log(torch.clamp_min(o, ALPHA_MIN) / ALPHA_MIN), 0.0)
+    r = torch.sqrt(2.0 * log_term) * torch.sqrt(p["lam_max"])
+    # Binning uses a slightly larger region (never smaller than what float32 can draw).
+    extent = (2.0 * log_term) * (1.0 + 2.0 * BIN_MARGIN_REL) + BIN_MARGIN_ABS
+    rb = torch.sqrt(extent * p["lam_max"])
+    # Pixel (i, j) is centred at (i + 0.5, j + 0.5).
+    x0 = torch.ceil(p["u"] - rb - 0.5)
+    x1 = torch.floor(p["u"] + rb - 0.5)
+    y0 = torch.ceil(p["v"] - rb - 0.5)
+    y1 = torch.floor(p["v"] + rb - 0.5)
+    ok = p["in_front"] & (o >= ALPHA_MIN)
+    ok = ok & (x1 >= 0) & (x0 <= width - 1) & (y1 >= 0) & (y0 <= height - 1)
+    ok = ok & torch.isfinite(p["u"]) & torch.isfinite(p["v"]) & torch.isfinite(r)
+    return torch.stack([
+        ok.to(means.dtype), p["z"], p["u"], p["v"], p["A"], p["B"], p["C"], p["D"], extent,
+        torch.clamp(x0, 0, width - 1), torch.clamp(x1, 0, width - 1),
+        torch.clamp(y0, 0, height - 1), torch.clamp(y1, 0, height - 1),
+        torch.clamp(r, 0.0, MAX_RADIUS)], dim=1)
+
+
+_COMPILED: dict = {}
+
+
+def _maybe_compiled(fn, compiled: bool):
+    """``fn`` eagerly, or through torch.compile (per Gaussian: fused forward and backward)."""
+    if not compiled:
+        return fn
+    if fn not in _COMPILED:
+        _COMPILED[fn] = torch.compile(fn, dynamic=True)
+    return _COMPILED[fn]
+
+
+def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, width, height,
+                      near=0.2, antialiased=False, compiled=False) -> Projection:
+    """Cull, project and depth-sort Gaussians (see :class:`Projection` for the outputs).
+
+    Args:
+        means: (N, 3) world positions (scene units).
+        log_scales: (N, 3) natural log of the Gaussian standard deviations (scene units).
+        quats: (N, 4) rotations (w, x, y, z), not necessarily normalised.
+        logit_opacities: (N,) opacity logits.
+        viewmat: (4, 4) world-to-camera matrix (OpenCV axes).
+        K: (3, 3) intrinsics in pixels.
+        width, height: image size in pixels.
+        near: Gaussians with camera-space z <= near are culled (scene units; INRIA: 0.2).
+        antialiased: multiply opacity by sqrt(det(cov2d) / det(cov2d + 0.3 I)).
+        compiled: run the per-Gaussian maths through torch.compile (same results to ~1e-15).
+
+    Culling (radius 0): z <= near; opacity < 1/255; no pixel centre of the image within the
+    opacity-aware radius ``ceil(sqrt(2 ln(255 o)) sqrt(lambda_max))``, beyond which
+    ``o exp(-0.5 d^2) < 1/255`` so nothing can be drawn.
+    """
+    f64 = torch.float64
+    vm = viewmat.detach().to(f64)
+    Kd = K.detach().to(f64)
+    if not near > 0:
+        raise ValueError(f"near must be > 0, got {near}")
+    with torch.no_grad():
+        info = _maybe_compiled(_cull_rows, compiled)(
+            means.detach().to(f64), log_scales.detach().to(f64), quats.detach().to(f64),
+            logit_opacities.detach().to(f64), vm, Kd, width, height, near, antialiased)
+        ok = info[:, 0] > 0
+        radii = torch.where(ok, torch.ceil(info[:, 13]), torch.zeros_like(info[:, 13]))
+        radii = radii.to(torch.int32)
+        vis = torch.nonzero(ok).squeeze(1)
+        order = torch.sort(info[:, 1].index_select(0, vis), stable=True).indices
+        ids = vis.index_select(0, order)
+        info = info.index_select(0, ids)
+
+    q = _maybe_compiled(_project_rows, compiled)(
+        *(x.index_select(0, ids).to(f64) for x in (means, log_scales, quats, logit_opacities)),
+        vm, Kd, width, height, near, antialiased)
+    means2d = torch.stack([q["u"], q["v"]], dim=-1)
+    chol = torch.stack([q["l11"], q["l21"], q["l22"]], dim=-1)
+    return Projection(ids=ids, means2d=means2d, chol=chol, opacity=q["opacity"], depth=q["z"],
+                      radii=radii, bbox=info[:, 9:13].to(torch.int64), cov2d=info[:, 4:8],
+                      extent=info[:, 8])
+
+
+def camera_centre(viewmat: torch.Tensor) -> torch.Tensor:
+    """(3,) world position of the camera centre, -R^T t."""
+    R = viewmat[:3, :3]
+    return -(R.T @ viewmat[:3, 3])
+
+
+def opacity_aware_radius(opacity: float, lam_max: float) -> float:
+    """Scalar helper (documentation/tests): radius where o exp(-0.5 r^2 / lam_max) = 1/255."""
+    if opacity < ALPHA_MIN:
+        return 0.0
+    return math.sqrt(2.0 * math.log(255.0 * opacity)) * math.sqrt(lam_max)
