@@ -9,6 +9,10 @@ Commands
     through the Blender cameras versus the COLMAP cameras).
 ``info FILE.ply``
     Prints what a Gaussian PLY holds (count, SH degree, bounds). No Blender needed.
+``train SCENE_DIR --out OUT_DIR [options]``
+    Trains 3D Gaussian Splatting (see ``recgs_addon.runner``); progress as JSON lines.
+``render MODEL.ply SCENE_DIR --out DIR [--names a.png,b.png]``
+    Renders a model from the survey's cameras (PNG and float EXR) and reports PSNR.
 """
 from __future__ import annotations
 
@@ -30,6 +34,10 @@ def _parser() -> argparse.ArgumentParser:
     imp.add_argument("--sh-degree", type=int, default=0, choices=range(4))
     info = sub.add_parser("info", help="describe a 3DGS PLY file")
     info.add_argument("ply", type=Path)
+    from .runner import add_render_arguments, add_train_arguments
+
+    add_train_arguments(sub.add_parser("train", help="train Gaussians on a survey (JSON-lines progress)"))
+    add_render_arguments(sub.add_parser("render", help="render a PLY from a survey's cameras"))
     return p
 
 
@@ -154,4 +162,6 @@ def cmd_info(args) -> int:
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
-    return {"import": cmd_import, "info": cmd_info}[args.command](args)
+    from .runner import run_render, run_train
+
+    return {"import": cmd_import, "info": cmd_info, "train": run_train, "render": run_render}[args.command](args)

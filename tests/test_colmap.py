@@ -186,3 +186,11 @@ def test_opencv_binary_cameras_bin_passes_structural_check(tmp_path):
     from recgs_addon.core.colmap import _check_cameras_bin
 
     _check_cameras_bin(tmp_path / "s/sparse/0/cameras.bin")
+
+
+def test_all_images_missing_says_so(colmap_scene):
+    root, _ = colmap_scene
+    for p in (root / "images").iterdir():
+        p.rename(root / p.name)
+    with pytest.raises(SceneError, match=r"images: none of the 4 images the COLMAP model lists are in this folder"):
+        load_scene(root)

@@ -244,7 +244,12 @@ def _points_from_reconstruction(rec) -> tuple[np.ndarray, np.ndarray]:
 def _check_images(rec, image_dir: Path) -> None:
     if not image_dir.is_dir():
         raise SceneError(f"{image_dir}: image folder does not exist")
-    for image_id in sorted(rec.reg_image_ids()):
+    ids = sorted(rec.reg_image_ids())
+    missing = [rec.image(i).name for i in ids if not (image_dir / rec.image(i).name).is_file()]
+    if missing and len(missing) == len(ids):
+        raise SceneError(f"{image_dir}: none of the {len(ids)} images the COLMAP model lists are in this "
+                         f"folder (first: {missing[0]}); is it the right image folder?")
+    for image_id in ids:
         image = rec.image(image_id)
         cam = rec.camera(image.camera_id)
         path = image_dir / image.name

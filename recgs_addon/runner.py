@@ -1,0 +1,242 @@
+"""Background jobs, run as ``python -m recgs_addon train|render ...`` (no Blender needed).
+
+``train`` streams progress as JSON lines on stdout (one object per line, ``"event"`` first:
+``start``, ``progress``, ``checkpoint``, ``done``, ``error``) and a human-readable line per
+update on stderr, so the Blender add-on (or any program) can follow it. It writes, in OUT_DIR:
+
+* ``checkpoint.pt``: the whole training state (model, Adam moments, random generators),
+  written atomically every ``--checkpoint-every`` seconds, on SIGTERM/SIGINT and at the end;
+* ``point_cloud.ply``: the current model in the INRIA layout, updated with each checkpoint
+  (this is what a live preview reads);
+* ``metrics.json``: held-out PSNR/SSIM, their history, time, Gaussian count, SH degree.
+
+``--resume`` continues from ``checkpoint.pt``. A killed job loses at most the steps since the
+last checkpoint; the files under their final names are always complete.
+"""
+from __future__ import annotations
+
+import json
+import math
+import signal
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from .core.errors import RecGSError
+
+
+def _emit(event: str, **fields) -> None:
+    print(json.dumps({"event": event, **fields}, allow_nan=False, default=_json_default), flush=True)
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(type(o).__name__)
+
+
+def _finite(x):
+    return None if x is None or (isinstance(x, float) and not math.isfinite(x)) else x
+
+
+def add_train_arguments(p) -> None:
+    p.add_argument("scene_dir", type=Path, help="folder with images/ and sparse/0")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--mode", choices=["3dgs", "recgs"], default="3dgs",
+                   help="3dgs: plain Gaussian Splatting; recgs: with caustic removal")
+    p.add_argument("--preset", choices=["default", "vanilla"], default="default",
+                   help="default: lean schedule; vanilla: INRIA's 30k-iteration schedule")
+    p.add_argument("--max-minutes", type=float, default=None, help="wall-clock limit")
+    p.add_argument("--iterations", type=int, default=None, help="upper bound on steps")
+    p.add_argument("--budget", default="auto", help="maximum Gaussians, or 'auto'")
+    p.add_argument("--downscale", type=int, default=1, help="train at image size / N")
+    p.add_argument("--sh-degree", type=int, default=3, choices=range(4), help="cap on the SH degree")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="cpu, cuda or mps (where torch has them)")
+    p.add_argument("--images", default=None, help="image folder with the same names (e.g. clean)")
+    p.add_argument("--holdout-every", type=int, default=8, help="hold out every Nth image; 0 = none")
+    p.add_argument("--init-ply", type=Path, default=None, help="start from these Gaussians")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--checkpoint-every", type=float, default=30.0, help="seconds between checkpoints")
+    p.add_argument("--eager", action="store_true", help="do not use torch.compile")
+
+
+def _parse_budget(text: str):
+    if text == "auto":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise RecGSError(f"--budget must be a number of Gaussians or 'auto', got {text!r}") from None
+    if value < 1:
+        raise RecGSError(f"--budget must be at least 1 Gaussian, got {value}")
+    return value
+
+
+def _check_device(name: str) -> None:
+    import torch
+
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise RecGSError(f"--device {name}: this torch has no CUDA device")
+    if name == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+        raise RecGSError("--device mps: this torch has no MPS device")
+
+
+def run_train(args) -> int:
+    import torch
+
+    from .core.checkpoint import load_checkpoint, save_checkpoint
+    from .core.ply import read_gaussian_ply, write_gaussian_ply
+    from .core.train import TrainConfig, make_trainer, preset
+
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    out: Path = args.out
+    ckpt_path = out / "checkpoint.pt"
+    try:
+        if args.mode == "recgs":
+            raise RecGSError("--mode recgs (caustic removal) is not available yet; use --mode 3dgs")
+        _check_device(args.device)
+        state = None
+        if args.resume:
+            state = load_checkpoint(ckpt_path)
+            cfg = TrainConfig(**{**state["config"], "pyramid": tuple(tuple(x) for x in state["config"]["pyramid"]),
+                                 "background": tuple(state["config"]["background"])})
+            if args.max_minutes is not None:
+                cfg.max_minutes = args.max_minutes
+            if args.iterations is not None:
+                cfg.iterations = args.iterations
+        else:
+            cfg = preset(args.preset, iterations=args.iterations, max_minutes=args.max_minutes,
+                         downscale=args.downscale, sh_degree=args.sh_degree, seed=args.seed,
+                         device=args.device, holdout_every=args.holdout_every,
+                         compiled=False if args.eager else None)
+            cfg.budget = _parse_budget(args.budget) if args.preset != "vanilla" or args.budget != "auto" else cfg.budget
+        init = read_gaussian_ply(args.init_ply) if args.init_ply and not args.resume else None
+        trainer = make_trainer(args.scene_dir, cfg, images=args.images, gaussians=init)
+        if state is not None:
+            trainer.load_state_dict(state)
+    except RecGSError as exc:
+        _emit("error", message=str(exc))
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+    out.mkdir(parents=True, exist_ok=True)
+    stop = {"signal": None}
+
+    def on_signal(signum, _frame):
+        stop["signal"] = signal.Signals(signum).name
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+
+    def checkpoint(tr) -> None:
+        save_checkpoint(ckpt_path, tr.state_dict())
+        write_gaussian_ply(out / "point_cloud.ply", tr.gaussians())
+        _emit("checkpoint", path=str(ckpt_path), ply=str(out / "point_cloud.ply"), iteration=tr.step,
+              gaussians=int(tr.params["means"].shape[0]))
+
+    def on_progress(p) -> None:
+        d = {k: _finite(v) for k, v in asdict(p).items() if k != "extra"}
+        _emit("progress", **d)
+        msg = (f"[{p.phase}] it {p.iteration} loss {p.loss:.4f} gaussians {p.gaussians} "
+               f"sh {p.sh_degree} {p.elapsed:.0f}s")
+        if p.eta is not None:
+            msg += f" (~{p.eta:.0f}s left)"
+        if p.psnr_test is not None:
+            msg += f" held-out PSNR {p.psnr_test:.2f} dB"
+        print(msg, file=sys.stderr, flush=True)
+
+    _emit("start", scene=str(args.scene_dir), out=str(out), resumed=bool(state), iteration=trainer.step,
+          train_views=len(trainer.data.train_ids), test_views=len(trainer.data.test_ids),
+          gaussians=int(trainer.params["means"].shape[0]), config=asdict(cfg))
+    try:
+        reason = trainer.run(on_progress=on_progress, should_stop=lambda: stop["signal"] is not None,
+                             on_checkpoint=checkpoint, checkpoint_every_s=args.checkpoint_every)
+    except Exception as exc:  # keep the last checkpoint; report the error as an event too
+        _emit("error", message=f"training failed at iteration {trainer.step}: {exc!r}")
+        raise
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    checkpoint(trainer)
+    if reason == "stopped":
+        _emit("done", status="cancelled", reason=f"received {stop['signal']}", iteration=trainer.step,
+              checkpoint=str(ckpt_path))
+        print(f"stopped by {stop['signal']} at iteration {trainer.step}; checkpoint saved", file=sys.stderr)
+        return 0
+    final = trainer.evaluate()
+    metrics = {
+        "status": "done", "reason": reason, "iterations": trainer.step,
+        "seconds": round(trainer.elapsed, 2), "gaussians": int(trainer.params["means"].shape[0]),
+        "sh_degree": trainer.sh_degree, "test_views": [trainer.data.scene.cameras[i].name for i in trainer.data.test_ids],
+        "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"), "history": trainer.history,
+        "config": asdict(trainer.cfg),
+    }
+    tmp = out / ".metrics.json.tmp"
+    tmp.write_text(json.dumps(metrics, indent=2, default=_json_default))
+    tmp.replace(out / "metrics.json")
+    _emit("done", **{k: v for k, v in metrics.items() if k not in ("history", "config")})
+    return 0
+
+
+def add_render_arguments(p) -> None:
+    p.add_argument("model", type=Path, help="a 3DGS PLY")
+    p.add_argument("scene_dir", type=Path, help="survey whose cameras to render from")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--names", default=None, help="comma-separated image names (default: all)")
+    p.add_argument("--downscale", type=int, default=1)
+    p.add_argument("--images", default=None, help="compare against this image folder (default images/)")
+    p.add_argument("--eager", action="store_true")
+
+
+def run_render(args) -> int:
+    import torch
+
+    from .core.colmap import load_scene
+    from .core.images import write_image
+    from .core.losses import psnr
+    from .core.ply import read_gaussian_ply
+    from .core.rasterizer import render
+
+    try:
+        g = read_gaussian_ply(args.model)
+        image_dir = None
+        if args.images:
+            image_dir = Path(args.images) if Path(args.images).is_absolute() else args.scene_dir / args.images
+        scene = load_scene(args.scene_dir, image_dir=image_dir)
+        cams = scene.cameras
+        if args.names:
+            wanted = [n.strip() for n in args.names.split(",") if n.strip()]
+            unknown = [n for n in wanted if n not in {c.name for c in cams}]
+            if unknown:
+                raise RecGSError(f"{scene.model_dir}: no camera for image(s) {', '.join(unknown)}")
+            cams = [c for c in cams if c.name in wanted]
+    except RecGSError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    t = {k: torch.tensor(v) for k, v in (("means", g.means), ("log_scales", g.log_scales), ("quats", g.quats),
+                                         ("logit_opacities", g.logit_opacities), ("sh", g.sh))}
+    results = []
+    for cam in cams:
+        img = scene.load_image(cam, downscale=args.downscale)
+        c = cam.scaled(cam.width / img.shape[1]) if args.downscale > 1 else cam
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            out = render(t["means"], t["log_scales"], t["quats"], t["logit_opacities"], t["sh"],
+                         torch.tensor(cam.viewmat, dtype=torch.float32), torch.tensor(c.K, dtype=torch.float32),
+                         img.shape[1], img.shape[0], compiled=False if args.eager else None)
+        dt = time.perf_counter() - t0
+        rgb = out.rgb.numpy()
+        stem = Path(cam.name).with_suffix("")
+        write_image(args.out / f"{stem}.png", rgb)
+        write_image(args.out / f"{stem}.exr", rgb)
+        value = psnr(torch.from_numpy(np.clip(rgb, 0, 1)), torch.from_numpy(img))
+        results.append({"name": cam.name, "psnr": _finite(value), "seconds": round(dt, 3)})
+        _emit("rendered", **results[-1])
+    mean = float(np.mean([r["psnr"] for r in results if r["psnr"] is not None])) if results else None
+    _emit("done", views=len(results), mean_psnr=mean)
+    return 0

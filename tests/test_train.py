@@ -1,0 +1,234 @@
+"""Trainer: density ops, determinism, exact resume, the job runner, bad inputs."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import ROOT, write_rendered_scene
+from recgs_addon.core import density
+from recgs_addon.core.errors import RecGSError
+from recgs_addon.core.train import holdout_split, make_trainer, preset
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("train") / "scene"
+    write_rendered_scene(root, n_views=8, width=40, height=30, n_gauss=200)
+    return root
+
+
+def tiny_cfg(**kw):
+    base = dict(iterations=120, eval_every=40, log_every=40, holdout_every=4, compiled=False,
+                densify_from=40, densify_every=40, densify_until=100, pyramid=((30, 2),))
+    base.update(kw)
+    return preset("default", **base)
+
+
+def test_holdout_split_llff():
+    names = [f"{i:02d}.png" for i in range(17)][::-1]
+    train, test = holdout_split(names, 8)
+    assert sorted(names[i] for i in test) == ["00.png", "08.png", "16.png"]
+    assert len(train) == 14 and not set(train) & set(test)
+    assert holdout_split(names, 0) == (sorted(range(17), key=lambda i: names[i]), [])
+
+
+def _toy_params(n=6):
+    torch.manual_seed(0)
+    p = {"means": torch.nn.Parameter(torch.randn(n, 3)), "logit_opacities": torch.nn.Parameter(torch.randn(n))}
+    opt = torch.optim.Adam([{"params": [p[k]], "name": k, "lr": 0.1} for k in p])
+    (p["means"].square().sum() + p["logit_opacities"].sum()).backward()
+    opt.step()
+    return p, opt
+
+
+def test_remove_and_append_keep_adam_state_aligned():
+    p, opt = _toy_params()
+    before = {k: opt.state[p[k]]["exp_avg"].clone() for k in p}
+    keep = torch.tensor([True, False, True, True, False, True])
+    density.remove(p, opt, keep)
+    for k in p:
+        assert torch.equal(opt.state[p[k]]["exp_avg"], before[k][keep])
+        assert opt.param_groups[[g["name"] for g in opt.param_groups].index(k)]["params"][0] is p[k]
+    density.append(p, opt, {"means": torch.ones(2, 3), "logit_opacities": torch.zeros(2)})
+    assert p["means"].shape == (6, 3)
+    assert torch.all(opt.state[p["means"]]["exp_avg"][4:] == 0)
+    (p["means"].sum() + p["logit_opacities"].sum()).backward()
+    opt.step()  # shapes agree: no error
+
+
+def test_reset_opacity_caps_and_clears_moments():
+    p, opt = _toy_params()
+    density.reset_opacity(p, opt, cap=0.01)
+    assert torch.sigmoid(p["logit_opacities"]).max() <= 0.01 + 1e-6
+    assert torch.all(opt.state[p["logit_opacities"]]["exp_avg"] == 0)
+
+
+def test_split_children_are_smaller_and_near_parent():
+    g = torch.Generator().manual_seed(0)
+    p = {"means": torch.zeros(3, 3), "log_scales": torch.log(torch.tensor([[0.1, 0.2, 0.3]] * 3)),
+         "quats": torch.tensor([[1.0, 0, 0, 0]] * 3), "logit_opacities": torch.zeros(3),
+         "sh_dc": torch.zeros(3, 1, 3), "sh_rest": torch.zeros(3, 0, 3)}
+    kids = density.split_values(p, torch.tensor([True, False, True]), g)
+    assert kids["means"].shape == (4, 3)
+    assert torch.allclose(kids["log_scales"].exp(), torch.tensor([[0.1, 0.2, 0.3]]) / 1.6)
+    assert (kids["means"].abs() < 5 * torch.tensor([0.1, 0.2, 0.3])).all()
+
+
+def test_training_improves_and_is_deterministic(small_scene):
+    a = make_trainer(small_scene, tiny_cfg())
+    start = a.evaluate()["psnr"]
+    a.run()
+    end = a.evaluate()["psnr"]
+    assert end > start + 1.0, (start, end)
+    b = make_trainer(small_scene, tiny_cfg())
+    b.run()
+    for k in a.params:
+        assert torch.equal(a.params[k], b.params[k]), k
+
+
+def test_state_dict_resume_is_exact(small_scene):
+    full = make_trainer(small_scene, tiny_cfg())
+    full.run()
+    part = make_trainer(small_scene, tiny_cfg())
+    assert part.run(should_stop=lambda: part.step >= 70) == "stopped"
+    state = part.state_dict()
+    resumed = make_trainer(small_scene, tiny_cfg())
+    resumed.load_state_dict(state)
+    resumed.run()
+    assert resumed.step == full.step
+    for k in full.params:
+        assert torch.equal(full.params[k], resumed.params[k]), k
+
+
+@pytest.mark.parametrize("kwargs,msg", [
+    ({"budget": 0}, "budget must be at least 1"),
+    ({"downscale": 8}, "below 8 px"),
+])
+def test_bad_settings_refused_before_work(small_scene, kwargs, msg):
+    with pytest.raises(RecGSError, match=msg):
+        make_trainer(small_scene, tiny_cfg(**kwargs))
+
+
+def _train_cmd(scene, out, *extra):
+    return [sys.executable, "-m", "recgs_addon", "train", str(scene), "--out", str(out), "--eager",
+            "--holdout-every", "4", *extra]
+
+
+def _run(cmd, **kw):
+    return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600, **kw)
+
+
+def test_job_bad_inputs_give_clear_errors(small_scene, tmp_path):
+    empty = tmp_path / "empty_scene"
+    import shutil
+
+    shutil.copytree(small_scene, empty)
+    shutil.rmtree(empty / "images")
+    (empty / "images").mkdir()
+    cases = [
+        (_train_cmd(empty, tmp_path / "o1"), "images: image folder is empty"),
+        (_train_cmd(small_scene, tmp_path / "o2", "--images", str(tmp_path)), "none of the 8 images"),
+        (_train_cmd(small_scene, tmp_path / "o3", "--budget", "0"), "budget must be at least 1"),
+        (_train_cmd(small_scene, tmp_path / "o4", "--downscale", "16"), "below 8 px"),
+        (_train_cmd(small_scene, tmp_path / "o5", "--resume"), "no checkpoint to resume from"),
+    ]
+    for cmd, msg in cases:
+        r = _run(cmd)
+        assert r.returncode == 1, (cmd, r.stderr)
+        assert msg in r.stderr, (msg, r.stderr)
+        events = [json.loads(line) for line in r.stdout.splitlines()]
+        assert events[-1]["event"] == "error" and msg in events[-1]["message"]
+    assert not (tmp_path / "o1").exists() and not (tmp_path / "o3").exists()
+
+
+def _final_psnr(out):
+    return json.loads((out / "metrics.json").read_text())["psnr_test"]
+
+
+@pytest.mark.slow
+def test_sigkill_then_resume_matches_uninterrupted(small_scene, tmp_path):
+    args = ("--iterations", "160", "--checkpoint-every", "0")
+    ref = _run(_train_cmd(small_scene, tmp_path / "ref", *args))
+    assert ref.returncode == 0, ref.stderr
+    out = tmp_path / "killed"
+    proc = subprocess.Popen(_train_cmd(small_scene, out, *args), cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+    rng = np.random.default_rng()
+    target = int(rng.integers(30, 120))
+    for line in proc.stdout:
+        ev = json.loads(line)
+        if ev["event"] == "checkpoint" and ev["iteration"] >= target:
+            proc.send_signal(signal.SIGKILL)
+            break
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    r = _run(_train_cmd(small_scene, out, "--resume"))
+    assert r.returncode == 0, r.stderr
+    assert abs(_final_psnr(out) - _final_psnr(tmp_path / "ref")) < 0.1
+
+
+@pytest.mark.slow
+def test_checkpoint_never_half_written(small_scene, tmp_path):
+    """Kill the job at random moments while it checkpoints every step: the file under the
+    final name always loads."""
+    from recgs_addon.core.checkpoint import load_checkpoint
+
+    out = tmp_path / "o"
+    rng = np.random.default_rng(1)
+    loaded = 0
+    for _ in range(4):
+        proc = subprocess.Popen(_train_cmd(small_scene, out, "--iterations", "100000", "--checkpoint-every", "0",
+                                           *(["--resume"] if (out / "checkpoint.pt").exists() else [])),
+                                cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.time() + 120
+        while not (out / "checkpoint.pt").exists() and time.time() < deadline:
+            time.sleep(0.05)
+        time.sleep(float(rng.uniform(0.2, 1.5)))
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        state = load_checkpoint(out / "checkpoint.pt")
+        assert state["step"] > 0
+        loaded += 1
+    assert loaded == 4
+    assert not [p for p in os.listdir(out) if p.endswith(".tmp") and not p.startswith(".")]
+
+
+def test_sigterm_checkpoints_and_exits_cleanly(small_scene, tmp_path):
+    out = tmp_path / "o"
+    proc = subprocess.Popen(_train_cmd(small_scene, out, "--iterations", "100000", "--checkpoint-every", "1000"),
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    for line in proc.stdout:
+        if json.loads(line).get("event") == "progress":
+            proc.send_signal(signal.SIGTERM)
+            break
+    rest = proc.stdout.read()
+    assert proc.wait(timeout=120) == 0
+    done = [json.loads(x) for x in rest.splitlines() if x.strip()][-1]
+    assert done["event"] == "done" and done["status"] == "cancelled"
+    from recgs_addon.core.checkpoint import load_checkpoint
+    from recgs_addon.core.ply import read_gaussian_ply
+
+    assert load_checkpoint(out / "checkpoint.pt")["step"] == done["iteration"]
+    assert len(read_gaussian_ply(out / "point_cloud.ply")) > 0
+
+
+def test_render_command(small_scene, tmp_path):
+    from recgs_addon.core.gaussians import init_from_points
+    from recgs_addon.core.colmap import load_scene
+    from recgs_addon.core.ply import write_gaussian_ply
+
+    sc = load_scene(small_scene)
+    write_gaussian_ply(tmp_path / "m.ply", init_from_points(sc.points, sc.colors))
+    r = _run([sys.executable, "-m", "recgs_addon", "render", str(tmp_path / "m.ply"), str(small_scene),
+              "--out", str(tmp_path / "r"), "--names", "view_001.png,view_002.png", "--eager"])
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == [
+        "view_001.exr", "view_001.png", "view_002.exr", "view_002.png"]
+    done = json.loads(r.stdout.splitlines()[-1])
+    assert done["views"] == 2 and done["mean_psnr"] > 5
