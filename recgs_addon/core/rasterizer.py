@@ -219,6 +219,19 @@ def _smoke_test(kern: _Kernels) -> None:
     kern.backward(pxl, pxl, geo, vals, g, te, torch.ones_like(out))
 
 
+def _smoke_render() -> None:
+    """A tiny compiled render + backward (compiles projection, SH, binning, slot tables)."""
+    gen = torch.Generator().manual_seed(0)
+    n = 3
+    params = [torch.rand(n, 3, generator=gen) * 0.2 + torch.tensor([0.0, 0.0, 2.0]),
+              torch.full((n, 3), -2.0), torch.rand(n, 4, generator=gen),
+              torch.zeros(n), torch.rand(n, 4, 3, generator=gen)]
+    params = [p.requires_grad_() for p in params]
+    K = torch.tensor([[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]])
+    out = render(*params, torch.eye(4), K, 8, 8, compiled=True)
+    out.rgb.sum().backward()
+
+
 def get_kernels(compiled: Optional[bool]) -> _Kernels:
     """The per-pair kernels: eager (``compiled=False``), ``torch.compile``d (``True``, raises
     if compilation fails) or compiled-if-possible (``None``, warns once and falls back)."""
@@ -227,8 +240,12 @@ def get_kernels(compiled: Optional[bool]) -> _Kernels:
     if "compiled" not in _KERNEL_CACHE:
         try:
             kern = _compiled_kernels()
-            _smoke_test(kern)
-            _KERNEL_CACHE["compiled"] = kern
+            # the first render may come from inside torch.no_grad() (an evaluation); the
+            # smoke tests need autograd, or a working compiler is taken for a broken one
+            with torch.enable_grad():
+                _smoke_test(kern)
+                _KERNEL_CACHE["compiled"] = kern
+                _smoke_render()      # the per-Gaussian compiled functions too
         except Exception as exc:  # no compiler, unsupported platform, ...
             _KERNEL_CACHE["compiled"] = exc
     kern = _KERNEL_CACHE["compiled"]
