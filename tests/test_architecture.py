@@ -35,3 +35,13 @@ def test_core_imports_without_bpy_on_path():
             "print('ok')")
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0 and "ok" in r.stdout, r.stderr
+
+
+def test_import_export_path_does_not_need_torch():
+    """Blender's Python may lack torch: COLMAP/PLY import and export must work without it."""
+    code = ("import sys; sys.modules['torch'] = None\n"
+            "import recgs_addon.core.colmap, recgs_addon.core.ply, recgs_addon.core.transform\n"
+            "import recgs_addon.core.gaussians, recgs_addon.core.images\n"
+            "print('ok')")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0 and "ok" in r.stdout, r.stderr

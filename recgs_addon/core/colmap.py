@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Camera, quat_to_rotmat
+from .cameras import Camera
 from .errors import ImageError, SceneError
 from .images import image_size, read_image
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import torch
 
 from .gaussians import logit
+from .projection import quat_to_rotmat
 
 #: Opacity below which a Gaussian is pruned (INRIA: 0.005).
 PRUNE_OPACITY = 0.005
@@ -78,15 +79,6 @@ def reset_opacity(params: dict, optimizer, cap: float = RESET_OPACITY) -> None:
         if st:
             st["exp_avg"].zero_()
             st["exp_avg_sq"].zero_()
-
-
-def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(q.shape[:-1] + (3, 3))
 
 
 def split_values(params: dict, select: torch.Tensor, generator: torch.Generator, n_children: int = 2) -> dict:

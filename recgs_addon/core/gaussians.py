@@ -19,6 +19,12 @@ import numpy as np
 
 #: Degree-0 real SH basis constant, 1 / (2 sqrt(pi)). DC colour c maps to (c - 0.5) / SH_C0.
 SH_C0 = 0.28209479177387814
+#: Degree-1 constant, sqrt(3) / (2 sqrt(pi)); degree-2 and -3 constants (INRIA's sh_utils.py).
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
+         -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 #: Initial opacity of Gaussians made from sparse points (INRIA uses 0.1).
 INIT_OPACITY = 0.1
 #: Neighbours averaged for the initial scale (INRIA: mean squared distance to 3 nearest).
@@ -26,6 +32,7 @@ INIT_NEIGHBOURS = 3
 
 
 def num_sh_coeffs(degree: int) -> int:
+    """Number of coefficients per channel for SH ``degree``: (d + 1)^2."""
     return (degree + 1) ** 2
 
 

@@ -12,24 +12,10 @@ from __future__ import annotations
 
 import torch
 
-#: Degree-0 constant, 1 / (2 sqrt(pi)).
-SH_C0 = 0.28209479177387814
-#: Degree-1 constant, sqrt(3) / (2 sqrt(pi)).
-SH_C1 = 0.4886025119029199
-#: Degree-2 constants.
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
-         -1.0925484305920792, 0.5462742152960396)
-#: Degree-3 constants.
-SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+from .gaussians import SH_C0, SH_C1, SH_C2, SH_C3, num_sh_coeffs  # noqa: F401  (one source)
 
 #: Colour offset: INRIA stores colour - 0.5 in the DC term (``RGB2SH``/``SH2RGB``).
 SH_COLOUR_OFFSET = 0.5
-
-
-def num_sh_coeffs(degree: int) -> int:
-    """Number of coefficients per channel for SH ``degree``: (d + 1)^2."""
-    return (degree + 1) ** 2
 
 
 def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:

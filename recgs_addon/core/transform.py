@@ -8,23 +8,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cameras import quat_to_rotmat
 from .errors import RecGSError
-from .gaussians import GaussianSet
-
-# Real SH basis as INRIA 3DGS evaluates it (utils/sh_utils.py), degree 1..3.
-SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
-         0.5462742152960396)
-SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+from .gaussians import SH_C0, SH_C1, SH_C2, SH_C3, GaussianSet
 
 
 def sh_basis_np(dirs: np.ndarray, degree: int) -> np.ndarray:
-    """Real SH basis (INRIA signs and order) for unit directions (M, 3) -> (M, (degree+1)^2), float64."""
+    """Real SH basis (INRIA signs and order) for unit directions (M, 3) -> (M, (degree+1)^2), float64.
+
+    The numpy twin of :func:`.sh.sh_basis` (torch): the export path must not need torch.
+    """
     d = np.asarray(dirs, dtype=np.float64)
     x, y, z = d[:, 0], d[:, 1], d[:, 2]
-    out = [np.full_like(x, 0.28209479177387814)]
+    out = [np.full_like(x, SH_C0)]
     if degree >= 1:
         out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
     if degree >= 2:
