@@ -253,3 +253,20 @@ def test_ply_with_nan_rows_warns_and_imports_rest(tmp_path, bpy_session):
 def test_import_colmap_without_folder_reports(bpy_session):
     with pytest.raises(RuntimeError, match="Choose a scene folder"):
         bpy.ops.recgs.import_colmap(directory="")
+
+
+def test_os_errors_are_reported_not_raised(tmp_path, bpy_session, monkeypatch):
+    """A file-system failure inside the core (here: a PLY that cannot be opened) is a report."""
+    from recgs_addon.core import ply as plymod
+    from recgs_addon.core.ply import write_gaussian_ply
+
+    write_gaussian_ply(tmp_path / "g.ply", random_gaussians(n=5, degree=0))
+
+    def denied(*a, **k):
+        raise PermissionError(13, "Permission denied", str(tmp_path / "g.ply"))
+
+    monkeypatch.setattr(plymod, "read_ply_elements", denied)
+    before = _scene_state(bpy)
+    with pytest.raises(RuntimeError, match="Permission denied"):
+        bpy.ops.recgs.import_ply(filepath=str(tmp_path / "g.ply"))
+    assert _scene_state(bpy) == before

@@ -75,7 +75,7 @@ class RECGS_OT_import_colmap(bpy.types.Operator):
         except ImportError as exc:
             self.report({"ERROR"}, _missing_dependency(exc))
             return {"CANCELLED"}
-        except RecGSError as exc:
+        except (RecGSError, OSError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         name = scene_dir.resolve().name or "survey"
@@ -116,7 +116,7 @@ class RECGS_OT_import_ply(bpy.types.Operator, ImportHelper):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 g = read_gaussian_ply(path)
-        except RecGSError as exc:
+        except (RecGSError, OSError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         for w in caught:
