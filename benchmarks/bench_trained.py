@@ -55,7 +55,7 @@ def main() -> None:
         opt = torch.optim.Adam(params, lr=1e-4, eps=1e-15)
         views = []
         for cam in cams:
-            c = cam.scaled(cam.width / W)
+            c = cam.resized(W, H)
             views.append((torch.tensor(cam.viewmat, dtype=torch.float32),
                           torch.tensor(c.K, dtype=torch.float32), torch.rand(H, W, 3)))
         for rep in range(args.repeats + 1):  # the first round warms up (and compiles)

@@ -70,12 +70,9 @@ def _parse_budget(text: str):
     if text == "auto":
         return None
     try:
-        value = int(text)
+        return int(text)  # the range is checked by TrainConfig.validate
     except ValueError:
         raise RecGSError(f"--budget must be a number of Gaussians or 'auto', got {text!r}") from None
-    if value < 1:
-        raise RecGSError(f"--budget must be at least 1 Gaussian, got {value}")
-    return value
 
 
 def _check_device(name: str) -> None:
@@ -114,8 +111,7 @@ def run_train(args) -> int:
             cfg = preset(args.preset, iterations=args.iterations, max_minutes=args.max_minutes,
                          downscale=args.downscale, sh_degree=args.sh_degree, seed=args.seed,
                          device=args.device, holdout_every=args.holdout_every,
-                         compiled=False if args.eager else None)
-            cfg.budget = _parse_budget(args.budget) if args.preset != "vanilla" or args.budget != "auto" else cfg.budget
+                         budget=_parse_budget(args.budget), compiled=False if args.eager else None)
         init = read_gaussian_ply(args.init_ply) if args.init_ply and not args.resume else None
         trainer = make_trainer(args.scene_dir, cfg, images=args.images, gaussians=init)
         if state is not None:
@@ -140,7 +136,7 @@ def run_train(args) -> int:
               gaussians=int(tr.params["means"].shape[0]))
 
     def on_progress(p) -> None:
-        d = {k: _finite(v) for k, v in asdict(p).items() if k != "extra"}
+        d = {k: _finite(v) for k, v in asdict(p).items()}
         _emit("progress", **d)
         msg = (f"[{p.phase}] it {p.iteration} loss {p.loss:.4f} gaussians {p.gaussians} "
                f"sh {p.sh_degree} {p.elapsed:.0f}s")
@@ -223,7 +219,7 @@ def run_render(args) -> int:
     results = []
     for cam in cams:
         img = scene.load_image(cam, downscale=args.downscale)
-        c = cam.scaled(cam.width / img.shape[1]) if args.downscale > 1 else cam
+        c = cam.resized(img.shape[1], img.shape[0])
         t0 = time.perf_counter()
         with torch.no_grad():
             out = render(t["means"], t["log_scales"], t["quats"], t["logit_opacities"], t["sh"],

@@ -81,10 +81,12 @@ class Camera:
 
     def scaled(self, factor: float) -> "Camera":
         """The same view at ``1/factor`` resolution (integer sizes, intrinsics scaled to match)."""
-        w = max(1, int(round(self.width / factor)))
-        h = max(1, int(round(self.height / factor)))
-        sx, sy = w / self.width, h / self.height
-        return Camera(self.name, w, h, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
+        return self.resized(max(1, int(round(self.width / factor))), max(1, int(round(self.height / factor))))
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same view as an image of exactly ``width`` x ``height`` (e.g. a downscaled file)."""
+        sx, sy = width / self.width, height / self.height
+        return Camera(self.name, width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
                       self.R.copy(), self.t.copy(), self.camera_id, self.image_id)
 
 

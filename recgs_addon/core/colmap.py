@@ -324,9 +324,10 @@ def load_scene(scene_dir: str | os.PathLike, image_dir: str | os.PathLike | None
     model_dir = find_model_dir(scene_dir)
     image_dir = Path(image_dir) if image_dir is not None else scene_dir / "images"
     rec = read_reconstruction(model_dir)
-    cams_file = model_dir / f"cameras{_model_format(model_dir)}"
+    ext = _model_format(model_dir)
+    cams_file = model_dir / f"cameras{ext}"
     if rec.num_reg_images() == 0:
-        raise SceneError(f"{model_dir / ('images' + _model_format(model_dir))}: the model has no registered images")
+        raise SceneError(f"{model_dir / ('images' + ext)}: the model has no registered images")
     models = {}
     for cam_id, cam in rec.cameras.items():
         name = cam.model.name

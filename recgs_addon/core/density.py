@@ -29,16 +29,16 @@ PRUNE_SCREEN_RADIUS = 20
 
 
 def _replace(params: dict, optimizer: torch.optim.Optimizer, fn) -> None:
-    """Apply ``fn(tensor, is_state) -> tensor`` to every parameter and its Adam moments."""
+    """Apply ``fn(name, tensor, is_state) -> tensor`` to every parameter and its Adam moments."""
     for group in optimizer.param_groups:
         old = group["params"][0]
         name = group["name"]
-        new = torch.nn.Parameter(fn(old.detach(), False), requires_grad=old.requires_grad)
+        new = torch.nn.Parameter(fn(name, old.detach(), False), requires_grad=old.requires_grad)
         state = optimizer.state.pop(old, None)
         if state is not None:
             for key in ("exp_avg", "exp_avg_sq"):
                 if key in state:
-                    state[key] = fn(state[key], True)
+                    state[key] = fn(name, state[key], True)
             optimizer.state[new] = state
         group["params"][0] = new
         params[name] = new
@@ -46,24 +46,16 @@ def _replace(params: dict, optimizer: torch.optim.Optimizer, fn) -> None:
 
 def remove(params: dict, optimizer, keep: torch.Tensor) -> None:
     """Keep only the Gaussians where ``keep`` (N,) bool is True."""
-    _replace(params, optimizer, lambda t, _: t[keep].clone())
+    _replace(params, optimizer, lambda name, t, is_state: t[keep].clone())
 
 
 def append(params: dict, optimizer, new_values: dict) -> None:
     """Append Gaussians (``new_values[name]`` of shape (M, ...)); their Adam moments start at 0."""
-    for group in optimizer.param_groups:
-        name = group["name"]
-        old = group["params"][0]
-        extra = new_values[name].to(old.dtype)
-        new = torch.nn.Parameter(torch.cat([old.detach(), extra], 0), requires_grad=old.requires_grad)
-        state = optimizer.state.pop(old, None)
-        if state is not None:
-            for key in ("exp_avg", "exp_avg_sq"):
-                if key in state:
-                    state[key] = torch.cat([state[key], torch.zeros_like(extra)], 0)
-            optimizer.state[new] = state
-        group["params"][0] = new
-        params[name] = new
+    def grow(name, t, is_state):
+        extra = new_values[name].to(t.dtype)
+        return torch.cat([t, torch.zeros_like(extra) if is_state else extra], 0)
+
+    _replace(params, optimizer, grow)
 
 
 def reset_opacity(params: dict, optimizer, cap: float = RESET_OPACITY) -> None:
@@ -123,9 +115,6 @@ class GradientStats:
 
     def mean(self) -> torch.Tensor:
         return self.accum / self.count.clamp_min(1)
-
-    def subset(self, keep: torch.Tensor) -> "GradientStats":
-        return GradientStats(self.accum[keep], self.count[keep], self.max_radius[keep])
 
     def state_dict(self) -> dict:
         return {"accum": self.accum, "count": self.count, "max_radius": self.max_radius}

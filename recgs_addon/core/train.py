@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -79,6 +79,13 @@ class TrainConfig:
     background: tuple = (0.0, 0.0, 0.0)
     compiled: Optional[bool] = None      # rasterizer through torch.compile: None = when available
 
+    def validate(self) -> None:
+        """Refuse settings no run can use (called before any data is read)."""
+        if self.downscale < 1:
+            raise RecGSError(f"downscale must be an integer >= 1, got {self.downscale}")
+        if self.budget is not None and self.budget < 1:
+            raise RecGSError(f"budget must be at least 1 Gaussian, got {self.budget}")
+
 
 def preset(name: str, **overrides) -> TrainConfig:
     """``vanilla``: INRIA's schedule. ``default``: the lean schedule measured in docs/training.md."""
@@ -135,11 +142,8 @@ class TrainData:
         if key not in self._cache:
             cam = self.scene.cameras[index]
             f = self.downscale * level
-            img = self.scene.load_image(cam, downscale=f) if f > 1 else self.scene.load_image(cam)
-            scaled = cam.scaled(cam.width / img.shape[1]) if f > 1 else cam
-            scaled = Camera(cam.name, img.shape[1], img.shape[0], scaled.fx, scaled.fy, scaled.cx,
-                            scaled.cy, cam.R, cam.t, cam.camera_id, cam.image_id)
-            self._cache[key] = (scaled, torch.from_numpy(img).to(self.device))
+            img = self.scene.load_image(cam, downscale=f)
+            self._cache[key] = (cam.resized(img.shape[1], img.shape[0]), torch.from_numpy(img).to(self.device))
         return self._cache[key]
 
     def drop_level(self, level: int) -> None:
@@ -166,15 +170,13 @@ class Progress:
     eta: Optional[float]
     psnr_test: Optional[float] = None
     ssim_test: Optional[float] = None
-    extra: dict = field(default_factory=dict)
 
 
 class Trainer:
     """One training run. ``run()`` until done or told to stop; ``state_dict()`` to checkpoint."""
 
     def __init__(self, data: TrainData, cfg: TrainConfig, gaussians: Optional[GaussianSet] = None):
-        if cfg.budget is not None and cfg.budget < 1:
-            raise RecGSError(f"budget must be at least 1 Gaussian, got {cfg.budget}")
+        cfg.validate()
         self.data, self.cfg = data, cfg
         self.device = torch.device(cfg.device)
         torch.manual_seed(cfg.seed)
@@ -479,10 +481,7 @@ class Trainer:
 def make_trainer(scene_dir: str | Path, cfg: TrainConfig, images: Optional[str | Path] = None,
                  gaussians: Optional[GaussianSet] = None) -> Trainer:
     """Load a survey and build a trainer; all input checks happen here, before any work."""
-    if cfg.downscale < 1:
-        raise RecGSError(f"downscale must be an integer >= 1, got {cfg.downscale}")
-    if cfg.budget is not None and cfg.budget < 1:
-        raise RecGSError(f"budget must be at least 1 Gaussian, got {cfg.budget}")
+    cfg.validate()
     scene_dir = Path(scene_dir)
     image_dir = None
     if images is not None:
