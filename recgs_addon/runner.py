@@ -29,7 +29,18 @@ from .core.errors import RecGSError
 
 
 def _emit(event: str, **fields) -> None:
-    print(json.dumps({"event": event, **fields}, allow_nan=False, default=_json_default), flush=True)
+    print(json.dumps(_finite_tree({"event": event, **fields}), allow_nan=False, default=_json_default), flush=True)
+
+
+def _finite_tree(o):
+    """Non-finite floats (a PSNR of identical images is inf) become null, so the JSON is standard."""
+    if isinstance(o, dict):
+        return {k: _finite_tree(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite_tree(v) for v in o]
+    if isinstance(o, (float, np.floating)) and not math.isfinite(o):
+        return None
+    return o
 
 
 def _json_default(o):
@@ -47,8 +58,9 @@ def _finite(x):
 def add_train_arguments(p) -> None:
     p.add_argument("scene_dir", type=Path, help="folder with images/ and sparse/0")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--mode", choices=["3dgs", "recgs"], default="3dgs",
-                   help="3dgs: plain Gaussian Splatting; recgs: with caustic removal")
+    p.add_argument("--mode", choices=["3dgs", "recgs", "filter2d", "joint", "oracle"], default="3dgs",
+                   help="3dgs: plain Gaussian Splatting; recgs: with caustic removal (RecGS); "
+                        "filter2d, joint, oracle: baselines (oracle trains on --gt-images)")
     p.add_argument("--preset", choices=["default", "vanilla"], default="default",
                    help="default: lean schedule; vanilla: INRIA's 30k-iteration schedule")
     p.add_argument("--max-minutes", type=float, default=None, help="wall-clock limit")
@@ -64,6 +76,18 @@ def add_train_arguments(p) -> None:
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--checkpoint-every", type=float, default=30.0, help="seconds between checkpoints")
     p.add_argument("--eager", action="store_true", help="do not use torch.compile")
+    g = p.add_argument_group("caustic removal")
+    g.add_argument("--gt-images", default=None,
+                   help="ground-truth images with the same names, for scoring (default: SCENE/clean if present)")
+    g.add_argument("--caustic-k", type=int, default=None,
+                   help="low-pass block size, odd (default 9, as the paper); 0 = from the residual spectrum")
+    g.add_argument("--caustic-model", choices=["additive", "multiplicative"], default=None,
+                   help="additive: fit I - C (paper); multiplicative: fit I / gain")
+    g.add_argument("--warmup", type=int, default=None, help="recgs: most plain steps before the first recurrence")
+    g.add_argument("--recurrence-steps", type=int, default=None, help="recgs: steps per recurrence")
+    g.add_argument("--max-recurrences", type=int, default=None)
+    g.add_argument("--recurrence-tol", type=float, default=None,
+                   help="recgs: stop when the relative change of C falls below this")
 
 
 def _parse_budget(text: str):
@@ -89,14 +113,13 @@ def run_train(args) -> int:
 
     from .core.checkpoint import load_checkpoint, save_checkpoint
     from .core.ply import read_gaussian_ply, write_gaussian_ply
-    from .core.train import TrainConfig, make_trainer, preset
+    from .core.outputs import write_outputs
+    from .core.train import TrainConfig, default_gt_dir, make_trainer, preset
 
     torch.set_num_threads(max(1, torch.get_num_threads()))
     out: Path = args.out
     ckpt_path = out / "checkpoint.pt"
     try:
-        if args.mode == "recgs":
-            raise RecGSError("--mode recgs (caustic removal) is not available yet; use --mode 3dgs")
         _check_device(args.device)
         state = None
         if args.resume:
@@ -111,9 +134,13 @@ def run_train(args) -> int:
             cfg = preset(args.preset, iterations=args.iterations, max_minutes=args.max_minutes,
                          downscale=args.downscale, sh_degree=args.sh_degree, seed=args.seed,
                          device=args.device, holdout_every=args.holdout_every,
-                         budget=_parse_budget(args.budget), compiled=False if args.eager else None)
+                         budget=_parse_budget(args.budget), compiled=False if args.eager else None,
+                         mode=args.mode, caustic_k=args.caustic_k, caustic_model=args.caustic_model,
+                         warmup=args.warmup, recurrence_steps=args.recurrence_steps,
+                         max_recurrences=args.max_recurrences, recurrence_tol=args.recurrence_tol)
         init = read_gaussian_ply(args.init_ply) if args.init_ply and not args.resume else None
-        trainer = make_trainer(args.scene_dir, cfg, images=args.images, gaussians=init)
+        gt = args.gt_images if args.gt_images is not None else default_gt_dir(args.scene_dir)
+        trainer = make_trainer(args.scene_dir, cfg, images=args.images, gaussians=init, gt_images=gt)
         if state is not None:
             trainer.load_state_dict(state)
     except RecGSError as exc:
@@ -159,6 +186,7 @@ def run_train(args) -> int:
         for s, h in old.items():
             signal.signal(s, h)
     checkpoint(trainer)
+    outputs = write_outputs(trainer, out)
     if reason == "stopped":
         _emit("done", status="cancelled", reason=f"received {stop['signal']}", iteration=trainer.step,
               checkpoint=str(ckpt_path))
@@ -169,13 +197,19 @@ def run_train(args) -> int:
         "status": "done", "reason": reason, "iterations": trainer.step,
         "seconds": round(trainer.elapsed, 2), "gaussians": int(trainer.params["means"].shape[0]),
         "sh_degree": trainer.sh_degree, "test_views": [trainer.data.scene.cameras[i].name for i in trainer.data.test_ids],
-        "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"), "history": trainer.history,
+        "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
+        "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"), **outputs,
+        "history": trainer.history, "recurrences": getattr(trainer, "rec_history", []),
         "config": asdict(trainer.cfg),
     }
     tmp = out / ".metrics.json.tmp"
-    tmp.write_text(json.dumps(metrics, indent=2, default=_json_default))
+    tmp.write_text(json.dumps(_finite_tree(metrics), indent=2, allow_nan=False, default=_json_default))
     tmp.replace(out / "metrics.json")
-    _emit("done", **{k: v for k, v in metrics.items() if k not in ("history", "config")})
+    from .core.report import write_run_report
+
+    report = write_run_report(out, metrics, trainer)
+    _emit("done", report=str(report),
+          **{k: v for k, v in metrics.items() if k not in ("history", "config", "recurrences")})
     return 0
 
 

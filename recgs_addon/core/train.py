@@ -33,6 +33,9 @@ from .rasterizer import render
 
 #: Smallest image side (pixels) accepted after downscaling.
 MIN_IMAGE_SIDE = 8
+#: Training modes: plain 3DGS (on the captured images, or ``oracle`` on ground truth) and the
+#: caustic-removal methods of core/recgs.py.
+MODES = ("3dgs", "oracle", "recgs", "filter2d", "joint")
 
 
 @dataclass
@@ -78,6 +81,15 @@ class TrainConfig:
     log_every: int = 50
     background: tuple = (0.0, 0.0, 0.0)
     compiled: Optional[bool] = None      # rasterizer through torch.compile: None = when available
+    # caustic removal (core/recgs.py): mode 3dgs | oracle (plain) | recgs | filter2d | joint
+    mode: str = "3dgs"
+    caustic_k: int = 9                   # low-pass block size (odd); 0 = choose from the residual spectrum
+    caustic_model: str = "additive"      # additive: I - C (paper) | multiplicative: I / exp(C_log)
+    warmup: int = 1500                   # recgs: at most this many plain steps before the first recurrence
+    recurrence_steps: int = 200          # recgs: optimisation steps per recurrence
+    max_recurrences: int = 40
+    recurrence_tol: float = 0.05         # stop when mean |dC| / mean |C| falls below this
+    caustic_floor: float = 0.004         # ... or when mean |C| falls below this (no caustics to remove)
 
     def validate(self) -> None:
         """Refuse settings no run can use (called before any data is read)."""
@@ -85,6 +97,14 @@ class TrainConfig:
             raise RecGSError(f"downscale must be an integer >= 1, got {self.downscale}")
         if self.budget is not None and self.budget < 1:
             raise RecGSError(f"budget must be at least 1 Gaussian, got {self.budget}")
+        if self.mode not in MODES:
+            raise RecGSError(f"unknown mode {self.mode!r} (choose from {', '.join(MODES)})")
+        if self.caustic_k < 0 or (self.caustic_k and self.caustic_k % 2 == 0):
+            raise RecGSError(f"caustic filter size must be a positive odd number (or 0 = auto), got {self.caustic_k}")
+        if self.caustic_model not in ("additive", "multiplicative"):
+            raise RecGSError(f"unknown caustic model {self.caustic_model!r} (additive or multiplicative)")
+        if self.recurrence_steps < 1:
+            raise RecGSError(f"recurrence steps must be at least 1, got {self.recurrence_steps}")
 
 
 def preset(name: str, **overrides) -> TrainConfig:
@@ -120,8 +140,12 @@ class TrainData:
     tensors. Cameras are scaled to match each level.
     """
 
-    def __init__(self, scene: Scene, downscale: int, holdout_every: int, device: str = "cpu"):
+    def __init__(self, scene: Scene, downscale: int, holdout_every: int, device: str = "cpu",
+                 gt_scene: Optional[Scene] = None):
         self.scene = scene
+        self.gt_scene = gt_scene
+        #: full-resolution replacement targets by camera index (caustic-free estimates)
+        self.targets: dict[int, torch.Tensor] = {}
         self.downscale = downscale
         self.device = device
         names = [c.name for c in scene.cameras]
@@ -145,6 +169,27 @@ class TrainData:
             img = self.scene.load_image(cam, downscale=f)
             self._cache[key] = (cam.resized(img.shape[1], img.shape[0]), torch.from_numpy(img).to(self.device))
         return self._cache[key]
+
+    def target(self, index: int, level: int = 1) -> tuple[Camera, torch.Tensor]:
+        """(camera, what to fit) of camera ``index``: the replacement target if one is set
+        (area-averaged to the level's size), else the image."""
+        cam, img = self.view(index, level)
+        t = self.targets.get(index)
+        if t is None:
+            return cam, img
+        if t.shape[:2] != img.shape[:2]:
+            t = torch.nn.functional.adaptive_avg_pool2d(t.permute(2, 0, 1), img.shape[:2]).permute(1, 2, 0)
+        return cam, t
+
+    def gt_view(self, index: int) -> Optional[torch.Tensor]:
+        """Ground-truth image (H, W, 3) of camera ``index`` at the training resolution, if any."""
+        if self.gt_scene is None:
+            return None
+        key = (index, "gt")
+        if key not in self._cache:
+            cam = self.gt_scene.cameras[index]
+            self._cache[key] = (cam, torch.from_numpy(self.gt_scene.load_image(cam, self.downscale)).to(self.device))
+        return self._cache[key][1]
 
     def drop_level(self, level: int) -> None:
         for key in [k for k in self._cache if k[1] == level]:
@@ -170,6 +215,9 @@ class Progress:
     eta: Optional[float]
     psnr_test: Optional[float] = None
     ssim_test: Optional[float] = None
+    psnr_test_gt: Optional[float] = None   # against the survey's ground truth, where it has one
+    recurrence: Optional[int] = None       # recgs: recurrences done
+    c_change: Optional[float] = None       # recgs: relative change of C in the last recurrence
 
 
 class Trainer:
@@ -259,7 +307,8 @@ class Trainer:
     def train_step(self) -> float:
         c = self.cfg
         level = self.level()
-        cam, img = self.data.view(self._next_view(), level)
+        index = self._next_view()
+        cam, img = self.data.target(index, level)
         for g in self.optimizer.param_groups:
             if g["name"] == "means":
                 g["lr"] = self._means_lr()
@@ -268,12 +317,13 @@ class Trainer:
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
                      background=torch.tensor(c.background, dtype=torch.float32), compiled=c.compiled)
-        loss = training_loss(out.rgb, img, c.lambda_dssim)
+        loss = training_loss(self._prediction(out.rgb, index), img, c.lambda_dssim)
         loss.backward()
         if self._densifying() and out.means2d.grad is not None:
             self.stats.add(out.means2d.grad, out.radii, cam.width, cam.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        self._after_step()
         self.step += 1
         if self._densifying() and self.step >= c.densify_from and self.step % c.densify_every == 0:
             self.densify()
@@ -284,6 +334,13 @@ class Trainer:
         if c.sh_policy == "schedule" and self.step % c.sh_every == 0 and self.sh_degree < c.sh_degree:
             self.sh_degree += 1
         return loss.item()
+
+    def _prediction(self, rgb: torch.Tensor, index: int) -> torch.Tensor:
+        """What the loss compares with the target (the joint baseline adds its caustic field)."""
+        return rgb
+
+    def _after_step(self) -> None:
+        """Extra optimiser steps of subclasses."""
 
     def _densifying(self) -> bool:
         return self.step < self.cfg.densify_until and not self.growth_frozen
@@ -333,26 +390,46 @@ class Trainer:
 
     # --- evaluation ---------------------------------------------------------------------
     @torch.no_grad()
+    def render_view(self, index: int) -> torch.Tensor:
+        """(H, W, 3) render of camera ``index`` at the training resolution (not clamped)."""
+        cam, _ = self.data.view(index, 1)
+        viewmat, K = _view_tensors(cam, self.device)
+        p = self.params
+        out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
+                     viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
+                     background=torch.tensor(self.cfg.background, dtype=torch.float32),
+                     compiled=self.cfg.compiled)
+        return out.rgb
+
+    def _eval_reference(self, index: int, rgb: torch.Tensor) -> torch.Tensor:
+        """What a held-out render is scored against for the run's own decisions: the held-out
+        image (caustic modes compensate its caustics, see core/recgs.py)."""
+        return self.data.view(index, 1)[1]
+
+    @torch.no_grad()
     def evaluate(self, ids: Optional[list[int]] = None) -> dict:
-        """Mean PSNR (dB) and SSIM over held-out views at the training resolution."""
+        """Mean PSNR (dB) and SSIM over held-out views at the training resolution: ``psnr`` /
+        ``ssim`` against the held-out images (what the run decides on), and ``psnr_gt`` /
+        ``ssim_gt`` against the ground truth where the survey has one."""
         ids = self.data.test_ids if ids is None else ids
         if self.cfg.eval_views:
             ids = ids[: self.cfg.eval_views]
         if not ids:
             return {}
-        p = self.params
-        ps, ss = [], []
+        ps, ss, pg, sg = [], [], [], []
         for i in ids:
-            cam, img = self.data.view(i, 1)
-            viewmat, K = _view_tensors(cam, self.device)
-            out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
-                         viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                         background=torch.tensor(self.cfg.background, dtype=torch.float32),
-                         compiled=self.cfg.compiled)
-            rgb = out.rgb.clamp(0, 1)
-            ps.append(psnr(rgb, img))
-            ss.append(float(ssim(rgb, img)))
-        return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss))}
+            rgb = self.render_view(i).clamp(0, 1)
+            ref = self._eval_reference(i, rgb)
+            ps.append(psnr(rgb, ref))
+            ss.append(float(ssim(rgb, ref)))
+            gt = self.data.gt_view(i)
+            if gt is not None:
+                pg.append(psnr(rgb, gt))
+                sg.append(float(ssim(rgb, gt)))
+        out = {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss))}
+        if pg:
+            out.update(psnr_gt=float(np.mean(pg)), ssim_gt=float(np.mean(sg)))
+        return out
 
     def _after_eval(self, metrics: dict) -> None:
         """Growth freeze (budget auto), SH probation and the plateau stop, from held-out PSNR."""
@@ -361,8 +438,9 @@ class Trainer:
         if value is None:
             return
         self.history.append({"iteration": self.step, "psnr": value, "ssim": metrics["ssim"],
+                             **{k: metrics[k] for k in ("psnr_gt", "ssim_gt") if k in metrics},
                              "gaussians": int(self.params["means"].shape[0]), "sh_degree": self.sh_degree,
-                             "elapsed": round(self.elapsed, 2)})
+                             "elapsed": round(self.elapsed, 2), "phase": self._phase()})
         if value > self.best_psnr + c.plateau_min_gain:
             self.best_psnr, self.since_best = value, 0
         else:
@@ -413,9 +491,14 @@ class Trainer:
             if c.max_minutes is not None and self.elapsed >= 60 * c.max_minutes:
                 self.done_reason = self.done_reason or "time limit"
             if self.done_reason:
-                break
+                if not self._continue_after(self.done_reason):
+                    break
+                self.done_reason = None
             if should_stop is not None and should_stop():
                 return "stopped"
+            self._schedule()
+            if self.done_reason:
+                continue
             prev_level = self.level()
             losses.append(self.train_step())
             if self.level() != prev_level:
@@ -435,6 +518,20 @@ class Trainer:
             on_progress(self._progress(np.mean(losses[-c.log_every:]) if losses else float("nan"), {}, "done"))
         return self.done_reason
 
+    def _continue_after(self, reason: str) -> bool:
+        """Whether to go on when the run would stop for ``reason`` (caustic modes go on to
+        their recurrences after a plateau)."""
+        return False
+
+    def _schedule(self) -> None:
+        """Work due before the next step (caustic re-estimation in core/recgs.py)."""
+
+    def _phase(self) -> str:
+        return "densify" if self._densifying() else "refine"
+
+    def _progress_extra(self) -> dict:
+        return {}
+
     def _progress(self, loss, metrics, phase=None) -> Progress:
         c = self.cfg
         eta = None
@@ -443,10 +540,11 @@ class Trainer:
             eta = per * (c.iterations - self.step)
             if c.max_minutes is not None:
                 eta = min(eta, max(0.0, 60 * c.max_minutes - self.elapsed))
-        phase = phase or ("densify" if self._densifying() else "refine")
+        phase = phase or self._phase()
         return Progress(phase, self.step, float(loss), int(self.params["means"].shape[0]), self.sh_degree,
                         round(self.elapsed, 2), None if eta is None else round(eta, 1),
-                        metrics.get("psnr"), metrics.get("ssim"))
+                        metrics.get("psnr"), metrics.get("ssim"), metrics.get("psnr_gt"),
+                        **self._progress_extra())
 
     # --- checkpoints ----------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -478,18 +576,45 @@ class Trainer:
         self.reset_done, self.done_reason = s["reset_done"], s["done_reason"]
 
 
+def _image_dir(scene_dir: Path, images) -> Path:
+    """An image folder given absolute, relative to the working directory, or by its name
+    inside the scene folder (``clean``)."""
+    p = Path(images)
+    if p.is_absolute() or (p.is_dir() and not (scene_dir / p).is_dir()):
+        return p
+    return scene_dir / p
+
+
+def default_gt_dir(scene_dir: str | Path) -> Optional[Path]:
+    """The survey's ground-truth folder (``clean/``, as tools/make_survey.py writes) if any."""
+    d = Path(scene_dir) / "clean"
+    return d if d.is_dir() else None
+
+
 def make_trainer(scene_dir: str | Path, cfg: TrainConfig, images: Optional[str | Path] = None,
-                 gaussians: Optional[GaussianSet] = None) -> Trainer:
-    """Load a survey and build a trainer; all input checks happen here, before any work."""
+                 gaussians: Optional[GaussianSet] = None, gt_images: Optional[str | Path] = None) -> Trainer:
+    """Load a survey and build the trainer of ``cfg.mode``; all input checks happen here,
+    before any work. ``gt_images``: a folder of ground-truth images with the same names, for
+    scoring (required by ``oracle``, which trains on them)."""
     cfg.validate()
     scene_dir = Path(scene_dir)
     image_dir = None
+    if cfg.mode == "oracle":
+        if gt_images is None:
+            raise RecGSError(f"{scene_dir}: mode oracle trains on ground-truth images, but there is no "
+                             "clean/ folder (pass --gt-images DIR)")
+        images = gt_images
     if images is not None:
-        image_dir = Path(images) if Path(images).is_absolute() else scene_dir / images
+        image_dir = _image_dir(scene_dir, images)
         if image_dir.is_dir() and not any(image_dir.iterdir()):
             raise RecGSError(f"{image_dir}: image folder is empty")
     elif (scene_dir / "images").is_dir() and not any((scene_dir / "images").iterdir()):
         raise RecGSError(f"{scene_dir / 'images'}: image folder is empty")
     scene = load_scene(scene_dir, image_dir=image_dir)
-    data = TrainData(scene, cfg.downscale, cfg.holdout_every, cfg.device)
+    gt_scene = load_scene(scene_dir, image_dir=_image_dir(scene_dir, gt_images)) if gt_images is not None else None
+    data = TrainData(scene, cfg.downscale, cfg.holdout_every, cfg.device, gt_scene=gt_scene)
+    if cfg.mode in ("recgs", "filter2d", "joint"):
+        from .recgs import CausticTrainer
+
+        return CausticTrainer(data, cfg, gaussians)
     return Trainer(data, cfg, gaussians)

@@ -1,0 +1,132 @@
+"""Markdown + PNG reports (no bpy): one per training run (``write_run_report``) and one per
+benchmark (``write_benchmark_report``, used by benchmarks/bench_caustics.py)."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from . import plot
+
+
+def _f(v, digits=2) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
+
+
+def write_run_report(out: Path, metrics: dict, trainer=None, examples: int = 3) -> Path:
+    """``OUT/report.md`` with PNGs under ``OUT/report/``: held-out PSNR against time, the change
+    of C per recurrence, triptychs (captured / caustic-free / ground truth) and caustic maps."""
+    out = Path(out)
+    rd = out / "report"
+    cfg = metrics.get("config", {})
+    lines = [f"# RecGS run: mode `{cfg.get('mode', '3dgs')}`", "",
+             "| quantity | value |", "|---|---|"]
+    rows = [("stopped because", metrics.get("reason")), ("iterations", metrics.get("iterations")),
+            ("seconds", metrics.get("seconds")), ("Gaussians", metrics.get("gaussians")),
+            ("SH degree", metrics.get("sh_degree")),
+            ("held-out PSNR vs captured (dB)", _f(metrics.get("psnr_test"))),
+            ("held-out PSNR vs ground truth (dB)", _f(metrics.get("psnr_test_gt"))),
+            ("held-out SSIM vs ground truth", _f(metrics.get("ssim_test_gt"), 4)),
+            ("training images as captured, PSNR vs ground truth (dB)", _f(metrics.get("psnr_captured_gt"))),
+            ("caustic-free training images, PSNR vs ground truth (dB)", _f(metrics.get("psnr_decaustic_gt"))),
+            ("caustic filter size k", metrics.get("caustic_k"))]
+    lines += [f"| {k} | {v} |" for k, v in rows if v not in (None, "-")]
+    hist = metrics.get("history", [])
+    if hist:
+        series = [("vs captured", [h["elapsed"] for h in hist], [h["psnr"] for h in hist])]
+        if any("psnr_gt" in h for h in hist):
+            series.append(("vs ground truth", [h["elapsed"] for h in hist], [h.get("psnr_gt") for h in hist]))
+        plot.line_chart(rd / "psnr.png", series, title="Held-out PSNR", xlabel="seconds", ylabel="dB")
+        lines += ["", "## Held-out PSNR against time", "", "![held-out PSNR](report/psnr.png)"]
+    rec = metrics.get("recurrences", [])
+    if rec:
+        plot.line_chart(rd / "c_change.png", [("mean |dC| / mean |C|", [r["recurrence"] for r in rec],
+                                               [r["c_change"] for r in rec])],
+                        title="Change of the caustic estimate", xlabel="recurrence", ylabel="relative change",
+                        log_y=True)
+        lines += ["", "## Recurrences", "", "![C change](report/c_change.png)", "",
+                  "| recurrence | iteration | seconds | change of C | mean abs C |", "|---|---|---|---|---|"]
+        lines += [f"| {r['recurrence']} | {r['iteration']} | {r['elapsed']} | {r['c_change']:.4f} | "
+                  f"{r['mean_abs_c']:.4f} |" for r in rec]
+    if trainer is not None and hasattr(trainer, "decaustic_image"):
+        data = trainer.data
+        ids = data.train_ids[:: max(1, len(data.train_ids) // examples)][:examples]
+        lines += ["", "## Examples (training views)", ""]
+        for i in ids:
+            name = Path(data.scene.cameras[i].name).stem
+            image = data.view(i, 1)[1].cpu().numpy()
+            free = trainer.decaustic_image(i).cpu().numpy()
+            gt = data.gt_view(i)
+            ims, labels = [image, free], ["captured", "caustic-free"]
+            if gt is not None:
+                ims.append(gt.cpu().numpy())
+                labels.append("ground truth")
+            plot.labelled_strip(rd / f"triptych_{name}.png", ims, labels)
+            cmap = image - free
+            strip = [plot.signed_map(cmap)]
+            lbl = ["caustic estimate C"]
+            if gt is not None:
+                true_c = image - gt.cpu().numpy()
+                span = float(np.percentile(np.abs(true_c), 99)) or 1.0
+                strip = [plot.signed_map(cmap, span), plot.signed_map(true_c, span)]
+                lbl = ["caustic estimate C", "true I - ground truth"]
+            plot.labelled_strip(rd / f"caustic_{name}.png", strip, lbl)
+            lines += [f"![{name}](report/triptych_{name}.png)", "", f"![{name} caustics](report/caustic_{name}.png)", ""]
+    path = out / "report.md"
+    tmp = out / ".report.md.tmp"
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(path)
+    return path
+
+
+def write_benchmark_report(out: Path, surveys: Sequence[str], methods: Sequence[str], results: dict,
+                           notes: Optional[list[str]] = None) -> Path:
+    """``results[survey][method]`` = run metrics (metrics.json). Writes ``OUT/benchmark.md`` with
+    one table and one PNG per survey of held-out PSNR (vs ground truth) against time."""
+    out = Path(out)
+    lines = ["# Caustic-removal benchmark", "",
+             "Held-out PSNR against the clean ground truth (dB), time to the end of the run (s), "
+             "PSNR of the caustic-free training images against ground truth (dB), and the RecGS "
+             "gap recovered = (recgs - 3dgs) / (oracle - 3dgs).", ""]
+    head = "| survey | " + " | ".join(methods) + " | gap recovered |"
+    lines += [head, "|" + "---|" * (len(methods) + 2)]
+    for s in surveys:
+        row = results.get(s, {})
+        cells = []
+        for m in methods:
+            r = row.get(m)
+            if not r:
+                cells.append("-")
+                continue
+            cell = f"{_f(r.get('psnr_test_gt'))} dB, {_f(r.get('seconds'), 0)} s"
+            if r.get("psnr_decaustic_gt") is not None:
+                cell += f", train {_f(r['psnr_decaustic_gt'])}"
+            cells.append(cell)
+        gap = "-"
+        try:
+            p3, po, pr = (row["3dgs"]["psnr_test_gt"], row["oracle"]["psnr_test_gt"], row["recgs"]["psnr_test_gt"])
+            if po - p3 > 1e-6:
+                gap = f"{(pr - p3) / (po - p3):.2f}"
+        except (KeyError, TypeError):
+            pass
+        lines.append(f"| {s} | " + " | ".join(cells) + f" | {gap} |")
+    for s in surveys:
+        series = []
+        for m in methods:
+            r = results.get(s, {}).get(m)
+            if r and r.get("history"):
+                h = [x for x in r["history"] if x.get("psnr_gt") is not None]
+                series.append((m, [x["elapsed"] for x in h], [x["psnr_gt"] for x in h]))
+        if series:
+            plot.line_chart(out / f"psnr_time_{s}.png", series, title=f"{s}: held-out PSNR vs ground truth",
+                            xlabel="seconds", ylabel="dB")
+            lines += ["", f"## {s}", "", f"![{s}](psnr_time_{s}.png)"]
+    if notes:
+        lines += ["", "## Notes", ""] + notes
+    path = out / "benchmark.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path

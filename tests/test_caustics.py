@@ -1,0 +1,255 @@
+"""Caustic removal: the FFT low-pass, the baselines' pieces, the recurrence, its resume and outputs."""
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import ROOT, write_rendered_scene
+from recgs_addon.core import caustics
+from recgs_addon.core.errors import RecGSError
+from recgs_addon.core.images import read_image, write_image
+from recgs_addon.core.losses import psnr
+from recgs_addon.core.train import make_trainer, preset
+
+
+def wave(h, w, fy, fx, phase=0.0, c=3):
+    y, x = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    v = np.cos(2 * np.pi * (fy * y / h + fx * x / w) + phase)
+    return torch.tensor(np.repeat(v[:, :, None], c, 2), dtype=torch.float32)
+
+
+def reference_lowpass(img: np.ndarray, k: int) -> np.ndarray:
+    """float64 direct DFT: sum of the kept frequencies f in -r..r (each index once)."""
+    h, w, _ = img.shape
+    r = k // 2
+    fys = sorted({f % h for f in range(-r, r + 1)}) if 2 * r + 1 < h else range(h)
+    fxs = sorted({f % w for f in range(-r, r + 1)}) if 2 * r + 1 < w else range(w)
+    y = np.arange(h)[:, None]
+    x = np.arange(w)[None, :]
+    out = np.zeros_like(img, dtype=np.float64)
+    for fy in fys:
+        for fx in fxs:
+            basis = np.exp(2j * np.pi * (fy * y / h + fx * x / w))
+            coef = (img.astype(np.float64) * np.conj(basis)[:, :, None]).sum((0, 1)) / (h * w)
+            out += (coef[None, None, :] * basis[:, :, None]).real
+    return out
+
+
+@pytest.mark.parametrize("h,w", [(36, 48), (37, 23), (31, 31), (16, 9)])
+def test_lowpass_keeps_low_frequency_field_exactly(h, w):
+    field = 0.3 * wave(h, w, 4, -3, 0.7) + 0.2 * wave(h, w, 1, 4, 2.0) + 0.5 + 0.1 * wave(h, w, -2, 0)
+    assert torch.allclose(caustics.lowpass(field, 9), field, atol=2e-6)
+
+
+@pytest.mark.parametrize("h,w", [(36, 48), (37, 23), (40, 41)])
+def test_lowpass_removes_high_frequencies(h, w):
+    low = 0.2 * wave(h, w, 2, 3)
+    high = 0.4 * wave(h, w, 9, 0) + 0.3 * wave(h, w, 5, 11, 1.0) + 0.3 * wave(h, w, 0, 5)
+    out = caustics.lowpass(low + high, 9)
+    assert torch.allclose(out, low, atol=2e-6)
+
+
+@pytest.mark.parametrize("h,w,k", [(13, 10, 9), (8, 12, 5), (9, 9, 3), (20, 7, 9)])
+def test_lowpass_matches_float64_dft(h, w, k):
+    img = np.random.default_rng(h * w + k).random((h, w, 3)).astype(np.float32)
+    ref = reference_lowpass(img, k)
+    out = caustics.lowpass(torch.from_numpy(img), k).numpy()
+    assert np.abs(out - ref).max() < 1e-6
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 3), (2, 2, 3), (1, 7, 3), (8, 8, 1)])
+def test_tiny_images_pass_through(shape):
+    img = torch.rand(shape)
+    assert torch.allclose(caustics.lowpass(img, 9), img, atol=1e-6)
+
+
+def test_constant_and_zero_images_stay_finite():
+    for v in (0.0, 1.0, 0.37):
+        img = torch.full((15, 22, 3), v)
+        out = caustics.lowpass(img, 9)
+        assert torch.isfinite(out).all() and torch.allclose(out, img, atol=1e-6)
+        assert torch.allclose(caustics.filter2d(img, 9), img, atol=1e-6)
+    assert caustics.caustic_change([torch.zeros(3, 3, 3)], [torch.zeros(3, 3, 3)]) == 0.0
+
+
+def test_bad_k_refused():
+    for k in (0, 4, -1, 2.5):
+        with pytest.raises(ValueError, match="odd"):
+            caustics.lowpass(torch.rand(8, 8, 3), k)
+
+
+def test_filter2d_removes_low_frequency_and_keeps_mean():
+    h, w = 30, 40
+    tex = 0.2 * wave(h, w, 7, 9) + 0.5
+    field = 0.15 * wave(h, w, 2, -1, 0.3)
+    out = caustics.filter2d(tex + field, 9)
+    assert torch.allclose(out, tex, atol=2e-6)
+
+
+def test_caustic_change_is_relative_mean_abs_change():
+    a = [torch.ones(4, 4, 3), 2 * torch.ones(2, 2, 3)]
+    b = [0.5 * torch.ones(4, 4, 3), 2 * torch.ones(2, 2, 3)]
+    assert caustics.caustic_change(a, b) == pytest.approx((48 * 0.5) / (48 + 24))
+    assert caustics.caustic_change(a, [torch.zeros_like(x) for x in a]) == 1.0
+
+
+def test_choose_k_follows_the_residual_spectrum():
+    rng = np.random.default_rng(0)
+    h, w = 96, 128
+    for r_true in (3, 7):
+        res = []
+        for i in range(4):
+            f = sum(0.05 * wave(h, w, fy, fx, rng.uniform(0, 6)) for fy in range(-r_true, r_true + 1)
+                    for fx in (r_true, -r_true, 0, 1))
+            res.append(f + torch.tensor(rng.normal(0, 0.02, (h, w, 3)), dtype=torch.float32))
+        assert caustics.choose_k(res, 3, 25) == 2 * r_true + 1
+
+
+def test_caustic_fields_are_the_fourier_basis_and_differentiable():
+    fields = caustics.CausticFields(2, 5)
+    with torch.no_grad():
+        fields.coef[1, 0, 2 + 1, 2 - 2, 0] = 0.3  # frequency (fy=1, fx=-2), real amplitude, channel 0
+    f = fields.field(1, 12, 16)
+    assert torch.allclose(f[:, :, 0], 0.3 * wave(12, 16, 1, -2, c=1)[:, :, 0], atol=1e-6)
+    assert torch.allclose(f[:, :, 1:], torch.zeros(12, 16, 2))
+    f.sum().backward()
+    assert fields.coef.grad is not None and torch.isfinite(fields.coef.grad).all()
+
+
+# --- the recurrence on a tiny survey whose ground truth is known ------------------------------
+
+def _caustic_field(h, w, i):
+    return 0.12 * wave(h, w, 1, 2, 0.9 * i) + 0.08 * wave(h, w, 2, -1, 1.7 * i + 0.5)
+
+
+@pytest.fixture(scope="module")
+def caustic_scene(tmp_path_factory):
+    """Captured images = clean renders + a per-view low-frequency caustic field; clean/ is GT."""
+    root = tmp_path_factory.mktemp("caustic") / "scene"
+    write_rendered_scene(root, n_views=10, width=48, height=36, n_gauss=300)
+    shutil.copytree(root / "images", root / "clean")
+    for i, p in enumerate(sorted((root / "clean").iterdir())):
+        img = torch.from_numpy(read_image(p))
+        write_image(root / "images" / p.name, (img + _caustic_field(36, 48, i)).clamp(0, 1).numpy())
+    return root
+
+
+@pytest.fixture(scope="module")
+def clean_scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("nocaustic") / "scene"
+    write_rendered_scene(root, n_views=10, width=48, height=36, n_gauss=300)
+    shutil.copytree(root / "images", root / "clean")
+    return root
+
+
+def rec_cfg(**kw):
+    base = dict(iterations=2000, eval_every=50, log_every=50, holdout_every=5, compiled=False, mode="recgs",
+                densify_from=50, densify_every=50, densify_until=300, pyramid=(), warmup=400,
+                recurrence_steps=60, max_recurrences=15, caustic_k=5)
+    base.update(kw)
+    return preset("default", **base)
+
+
+def test_recurrence_converges_stops_and_removes_the_caustics(caustic_scene):
+    tr = make_trainer(caustic_scene, rec_cfg(), gt_images="clean")
+    reason = tr.run()
+    assert "converged" in reason, reason
+    assert 2 <= tr.recurrence < 15
+    changes = [r["c_change"] for r in tr.rec_history]
+    assert changes[0] == 1.0 and changes[-1] < 0.05
+    ids = tr.data.train_ids
+    captured = np.mean([psnr(tr.data.view(i)[1], tr.data.gt_view(i)) for i in ids])
+    cleaned = np.mean([psnr(tr.decaustic_image(i).clamp(0, 1), tr.data.gt_view(i)) for i in ids])
+    assert cleaned > captured + 4.0, (captured, cleaned)
+    # the estimate follows each view's own field (the caustics move between views)
+    for i in ids[:3]:
+        true = _caustic_field(36, 48, i)
+        est = tr.caustic_map(i)
+        corr = np.corrcoef(est.flatten().numpy(), true.flatten().numpy())[0, 1]
+        assert corr > 0.85
+
+
+def test_no_caustics_stops_within_three_rounds(clean_scene):
+    tr = make_trainer(clean_scene, rec_cfg(), gt_images="clean")
+    reason = tr.run()
+    assert tr.recurrence <= 3 and ("no caustics" in reason or "converged" in reason), (reason, tr.rec_history)
+
+
+def test_resume_in_the_middle_of_a_recurrence_continues_it(caustic_scene):
+    cfg = rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40)
+    a = make_trainer(caustic_scene, cfg, gt_images="clean")
+    a.cfg.iterations = 430  # inside the first recurrence (400..460)
+    a.run()
+    assert a.stage == "recurrence" and a.recurrence == 1 and a.next_due == 460
+    state = a.state_dict()
+    b = make_trainer(caustic_scene, rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40),
+                     gt_images="clean")
+    b.load_state_dict(state)
+    b.cfg.iterations = 560
+    b.run()
+    ref = make_trainer(caustic_scene, rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40),
+                       gt_images="clean")
+    ref.run()
+    assert b.recurrence == ref.recurrence == 3
+    for n in ref.params:
+        assert torch.equal(b.params[n], ref.params[n]), n
+    assert [r["c_change"] for r in b.rec_history] == [r["c_change"] for r in ref.rec_history]
+
+
+@pytest.mark.parametrize("mode", ["filter2d", "joint"])
+def test_baselines_train_and_estimate(caustic_scene, mode):
+    tr = make_trainer(caustic_scene, rec_cfg(mode=mode, iterations=300), gt_images="clean")
+    tr.run()
+    ids = tr.data.train_ids
+    free = [tr.decaustic_image(i) for i in ids]
+    assert all(torch.isfinite(f).all() for f in free)
+    if mode == "filter2d":  # a pure low-frequency field on a flat-ish image: mostly removed
+        captured = np.mean([psnr(tr.data.view(i)[1], tr.data.gt_view(i)) for i in ids])
+        cleaned = np.mean([psnr(f.clamp(0, 1), tr.data.gt_view(i)) for f, i in zip(free, ids)])
+        assert cleaned > captured
+    else:
+        assert float(tr.fields.coef.abs().sum()) > 0  # the fields learnt something
+
+
+def test_bad_caustic_settings_refused(caustic_scene, tmp_path):
+    with pytest.raises(RecGSError, match="odd"):
+        make_trainer(caustic_scene, rec_cfg(caustic_k=4))
+    with pytest.raises(RecGSError, match="caustic model"):
+        make_trainer(caustic_scene, rec_cfg(caustic_model="square"))
+    bare = tmp_path / "bare"
+    shutil.copytree(caustic_scene, bare, ignore=shutil.ignore_patterns("clean"))
+    with pytest.raises(RecGSError, match="clean"):
+        make_trainer(bare, rec_cfg(mode="oracle"))
+
+
+def test_recgs_job_writes_caustic_outputs_and_report(caustic_scene, tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "recgs_addon", "train", str(caustic_scene), "--out", str(out), "--mode", "recgs",
+           "--iterations", "260", "--warmup", "150", "--recurrence-steps", "50", "--caustic-k", "5",
+           "--holdout-every", "5", "--eager", "--downscale", "1"]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    events = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert any(e.get("phase") == "recurrence" and e.get("recurrence") for e in events if e["event"] == "progress")
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["recurrences"] and m["psnr_decaustic_gt"] > m["psnr_captured_gt"]
+    train_names = sorted(p.name for p in (caustic_scene / "images").iterdir())
+    test_names = train_names[::5]
+    for name in train_names:
+        stem = name[:-4]
+        if name in test_names:
+            assert (out / "renders" / f"{stem}.png").is_file()
+            assert not (out / "caustic" / f"{stem}.exr").exists()
+        else:
+            c = read_image(out / "caustic" / f"{stem}.exr")
+            free = read_image(out / "decaustic" / f"{stem}.exr")
+            img = read_image(caustic_scene / "images" / name)
+            assert np.allclose(img - c, free, atol=1e-5)  # I - C = caustic-free, in float
+            assert (out / "decaustic" / f"{stem}.png").is_file()
+    report = (out / "report.md").read_text()
+    assert "report/c_change.png" in report and (out / "report" / "c_change.png").is_file()
+    assert any(p.name.startswith("triptych_") for p in (out / "report").iterdir())
