@@ -13,6 +13,10 @@ Commands
     Trains 3D Gaussian Splatting (see ``recgs_addon.runner``); progress as JSON lines.
 ``render MODEL.ply SCENE_DIR --out DIR [--names a.png,b.png]``
     Renders a model from the survey's cameras (PNG and float EXR) and reports PSNR.
+``sfm PHOTO_DIR --out SCENE_DIR [--link] [--overwrite]``
+    Structure from motion with pycolmap (``recgs_addon.core.sfm``): copies (or links) the
+    photos to SCENE_DIR/images and writes the COLMAP model to SCENE_DIR/sparse/0, ready for
+    ``import`` and ``train``. Progress as JSON lines, like ``train``.
 """
 from __future__ import annotations
 
@@ -38,6 +42,13 @@ def _parser() -> argparse.ArgumentParser:
 
     add_train_arguments(sub.add_parser("train", help="train Gaussians on a survey (JSON-lines progress)"))
     add_render_arguments(sub.add_parser("render", help="render a PLY from a survey's cameras"))
+    sfm = sub.add_parser("sfm", help="photos -> COLMAP model with pycolmap (JSON-lines progress)")
+    sfm.add_argument("photo_dir", type=Path, help="folder of overlapping photos")
+    sfm.add_argument("--out", type=Path, required=True, help="scene folder to write (images/, sparse/0)")
+    sfm.add_argument("--link", action="store_true", help="symlink the photos instead of copying them")
+    sfm.add_argument("--overwrite", action="store_true", help="replace an existing sparse/0")
+    sfm.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model (one camera shared)")
+    sfm.add_argument("--threads", type=int, default=2)
     return p
 
 
@@ -160,8 +171,75 @@ def cmd_info(args) -> int:
     return 0
 
 
+def _emit(event: str, **fields) -> None:
+    print(json.dumps({"event": event, **fields}), flush=True)
+
+
+def _stage_photos(photo_dir: Path, image_dir: Path, names: list[str], link: bool) -> None:
+    """Copy (or symlink) the photos into the scene's image folder; leaves other files alone."""
+    import os
+    import shutil
+
+    image_dir.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        src, dst = photo_dir / name, image_dir / name
+        if dst.is_symlink() or dst.exists():
+            dst.unlink()
+        if link:
+            os.symlink(src.resolve(), dst)
+        else:
+            shutil.copy2(src, dst)
+
+
+def cmd_sfm(args) -> int:
+    from .core.errors import RecGSError
+
+    t0 = time.perf_counter()
+    scene: Path = args.out
+    image_dir = scene / "images"
+    model_dir = scene / "sparse" / "0"
+    try:
+        from .core.sfm import SfmOptions, list_images, reconstruct
+
+        names = list_images(args.photo_dir)
+        if model_dir.exists() and not args.overwrite:
+            raise RecGSError(f"{model_dir}: a COLMAP model is already there (import it, or pass --overwrite)")
+        import pycolmap  # noqa: F401  (fail before copying anything)
+    except ImportError as exc:
+        msg = f"sfm needs the Python package '{exc.name}' (pip install pycolmap)"
+        _emit("error", message=msg)
+        print(f"error: {msg}", file=sys.stderr)
+        return 1
+    except RecGSError as exc:
+        _emit("error", message=str(exc))
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    _emit("start", photos=str(args.photo_dir), scene=str(scene), images=len(names))
+    same = image_dir.exists() and image_dir.resolve() == args.photo_dir.resolve()
+    if not same:
+        _stage_photos(args.photo_dir, image_dir, names, args.link)
+
+    def on_progress(phase: str, done: int, total: int) -> None:
+        _emit("progress", phase=phase, done=done, total=total, elapsed=round(time.perf_counter() - t0, 2))
+        print(f"[{phase}] {done}/{total}", file=sys.stderr, flush=True)
+
+    try:
+        result = reconstruct(image_dir, model_dir, scene / "database.db",
+                             SfmOptions(camera_model=args.camera_model, threads=args.threads), on_progress)
+    except RecGSError as exc:
+        _emit("error", message=str(exc))
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    _emit("done", status="done", scene=str(scene), **result.summary())
+    print(f"registered {result.registered}/{result.images} photos, {result.points} points, "
+          f"model in {model_dir}", file=sys.stderr)
+    return 0
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
+    if args.command == "sfm":
+        return cmd_sfm(args)
     from .runner import run_render, run_train
 
     return {"import": cmd_import, "info": cmd_info, "train": run_train, "render": run_render}[args.command](args)

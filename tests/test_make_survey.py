@@ -122,3 +122,18 @@ def test_tiny_survey_end_to_end(tmp_path):
         assert s["min_gain"] >= 0.0
     assert len({tuple(s["offset"]) for s in shots}) == 4
     assert meta["intrinsics"]["cx"] == 32.0 and meta["intrinsics"]["cy"] == 24.0
+
+
+def test_run_sfm_uses_core_sfm(tmp_path):
+    """--sfm goes through recgs_addon.core.sfm: six sample views register, poses match the truth."""
+    pycolmap = pytest.importorskip("pycolmap")
+    sample = ROOT / "data" / "sample"
+    (tmp_path / "images").mkdir()
+    for i in range(6):
+        (tmp_path / "images" / f"view_{i:03d}.png").write_bytes((sample / "images" / f"view_{i:03d}.png").read_bytes())
+    res = ms.run_sfm(tmp_path, pycolmap.Reconstruction(str(sample / "sparse" / "0")), threads=2)
+    assert res["images"] == 6 and res["registered"] >= 3
+    assert res["mean_reprojection_error_px"] < 1.0
+    assert res["median_position_error_m"] < 0.05  # after the similarity alignment
+    assert (tmp_path / "sfm" / "0" / "images.bin").is_file()
+    assert not [p for p in (tmp_path / "sfm").iterdir() if p.name != "0"]

@@ -1055,50 +1055,20 @@ def reprojection_errors(rec) -> np.ndarray:
 
 
 def run_sfm(out: Path, true_rec, threads: int) -> dict:
-    """pycolmap SIFT + exhaustive matching + incremental mapping on images/ -> sfm/0; compare to truth."""
+    """pycolmap SfM (``recgs_addon.core.sfm``) on images/ -> sfm/0; compare with the truth."""
     import pycolmap
+
+    from recgs_addon.core.errors import SceneError
+    from recgs_addon.core.sfm import SfmOptions, reconstruct
+
     t0 = time.time()
-    db = out / "database.db"
-    if db.exists():
-        db.unlink()
-    sfm_dir = out / "sfm"
-    shutil.rmtree(sfm_dir, ignore_errors=True)
-    sfm_dir.mkdir(parents=True)
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "SIMPLE_RADIAL"
-    ext = pycolmap.FeatureExtractionOptions()
-    ext.num_threads = threads
-    ext.sift.peak_threshold = 0.004          # low-contrast underwater images
-    pycolmap.extract_features(db, out / "images", camera_mode=pycolmap.CameraMode.SINGLE,
-                              reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
-    match = pycolmap.FeatureMatchingOptions()
-    match.num_threads = threads
-    pycolmap.match_exhaustive(db, matching_options=match, device=pycolmap.Device.cpu)
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.num_threads = threads
-    opts.random_seed = 0
-    # small (256 px) images with caustics give fewer matches than COLMAP's defaults expect
-    opts.mapper.init_min_num_inliers = 30
-    opts.mapper.abs_pose_min_num_inliers = 15
-    opts.min_model_size = 3
-    recs = pycolmap.incremental_mapping(db, out / "images", sfm_dir, opts)
-    elapsed = time.time() - t0
-    if not recs:
-        return {"registered": 0, "images": len(true_rec.images), "seconds": elapsed}
-    best_key = max(recs, key=lambda k: recs[k].num_reg_images())
-    best = recs[best_key]
-    # keep only the largest model as sfm/0
-    tmp = sfm_dir / "_best"
-    tmp.mkdir(parents=True)
-    best.write(str(tmp))
-    for p in sfm_dir.iterdir():
-        if p.name != "_best":
-            shutil.rmtree(p, ignore_errors=True)
-    tmp.rename(sfm_dir / "0")
-    res = {"registered": int(best.num_reg_images()), "images": len(true_rec.images),
-           "models": len(recs), "points": int(best.num_points3D()),
-           "mean_reprojection_error_px": float(best.compute_mean_reprojection_error()),
-           "camera": str(next(iter(best.cameras.values()))), "seconds": elapsed}
+    shutil.rmtree(out / "sfm", ignore_errors=True)
+    try:
+        result = reconstruct(out / "images", out / "sfm" / "0", out / "database.db", SfmOptions(threads=threads))
+    except SceneError:
+        return {"registered": 0, "images": len(true_rec.images), "seconds": time.time() - t0}
+    best = result.reconstruction
+    res = {k: v for k, v in result.summary().items() if k != "model"}
     # compare with the truth: similarity from projection centres, then pose errors
     sim = pycolmap.align_reconstructions_via_proj_centers(best, true_rec, 0.1)
     if sim is not None:

@@ -25,18 +25,12 @@ def _missing_dependency(exc: ImportError) -> str:
             "See the README (Installing the dependencies).")
 
 
-def _make_active(context, obj) -> None:
+def _make_active(view_layer, obj) -> None:
     """Select ``obj`` alone and make it the active object."""
-    for o in context.view_layer.objects:
+    for o in view_layer.objects:
         o.select_set(False)
     obj.select_set(True)
-    context.view_layer.objects.active = obj
-
-
-def _new_collection(context, name: str):
-    coll = bpy.data.collections.new(name)
-    context.scene.collection.children.link(coll)
-    return coll
+    view_layer.objects.active = obj
 
 
 class RECGS_OT_import_colmap(bpy.types.Operator):
@@ -64,38 +58,67 @@ class RECGS_OT_import_colmap(bpy.types.Operator):
             self.report({"ERROR"}, "Choose a scene folder (with images/ and sparse/)")
             return {"CANCELLED"}
         try:
-            from ..core.colmap import load_scene
-            from ..core.gaussians import init_from_points
-
-            t0 = time.perf_counter()
-            scene_dir = Path(bpy.path.abspath(self.directory))
-            image_dir = Path(self.images) if os.path.isabs(self.images) else scene_dir / self.images
-            survey = load_scene(scene_dir, image_dir=image_dir)
-            g = init_from_points(survey.points, survey.colors, sh_degree=self.sh_degree)
+            obj, msg = import_survey(context.scene, context.view_layer, bpy.path.abspath(self.directory),
+                                     self.images, self.sh_degree)
         except ImportError as exc:
             self.report({"ERROR"}, _missing_dependency(exc))
             return {"CANCELLED"}
         except (RecGSError, OSError) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        name = scene_dir.resolve().name or "survey"
-        coll = _new_collection(context, f"RecGS {name}")
-        cam_coll = bpy.data.collections.new(f"{name} cameras")
-        coll.children.link(cam_coll)
-        cam_objs = [bcams.create_camera_object(c, cam_coll) for c in survey.cameras]
-        obj = gobj.create_gaussian_object(f"{name} Gaussians", g, coll)
-        obj["recgs_scene_dir"] = str(scene_dir)
-        obj["recgs_image_dir"] = str(image_dir)
-        if survey.undistorted:
-            obj["recgs_undistorted_dir"] = str(survey.image_dir)
-        bcams.apply_render_settings(context.scene, cam_objs[0])
-        _make_active(context, obj)
-        msg = (f"Imported {len(cam_objs)} cameras and {len(g)} Gaussians from {scene_dir} "
-               f"in {time.perf_counter() - t0:.2f} s")
-        if survey.undistorted:
-            msg += f" (images undistorted to {survey.image_dir})"
         self.report({"INFO"}, msg)
+        warning = add_preview(obj)
+        if warning:
+            self.report({"WARNING"}, warning)
         return {"FINISHED"}
+
+
+def import_survey(scene, view_layer, scene_dir, images: str = "images", sh_degree: int = 0):
+    """Import a COLMAP survey into ``scene``: a collection with one camera per image and the
+    Gaussian object, made active. Returns ``(object, message)``. Raises RecGSError, OSError
+    or ImportError before anything is created."""
+    from ..core.colmap import load_scene
+    from ..core.gaussians import init_from_points
+
+    t0 = time.perf_counter()
+    scene_dir = Path(scene_dir)
+    image_dir = Path(images) if os.path.isabs(images) else scene_dir / images
+    survey = load_scene(scene_dir, image_dir=image_dir)
+    g = init_from_points(survey.points, survey.colors, sh_degree=sh_degree)
+    name = scene_dir.resolve().name or "survey"
+    coll = bpy.data.collections.new(f"RecGS {name}")
+    scene.collection.children.link(coll)
+    cam_coll = bpy.data.collections.new(f"{name} cameras")
+    coll.children.link(cam_coll)
+    cam_objs = [bcams.create_camera_object(c, cam_coll) for c in survey.cameras]
+    obj = gobj.create_gaussian_object(f"{name} Gaussians", g, coll)
+    obj["recgs_scene_dir"] = str(scene_dir)
+    obj["recgs_image_dir"] = str(image_dir)
+    if survey.undistorted:
+        obj["recgs_undistorted_dir"] = str(survey.image_dir)
+    bcams.apply_render_settings(scene, cam_objs[0])
+    _make_active(view_layer, obj)
+    settings = getattr(scene, "recgs", None)
+    if settings is not None:  # the sidebar shows the folder last imported
+        settings.scene_dir = str(scene_dir)
+        if not os.path.isabs(images):
+            settings.images = images
+    msg = (f"Imported {len(cam_objs)} cameras and {len(g)} Gaussians from {scene_dir} "
+           f"in {time.perf_counter() - t0:.2f} s")
+    if survey.undistorted:
+        msg += f" (images undistorted to {survey.image_dir})"
+    return obj, msg
+
+
+def add_preview(obj) -> str:
+    """Add the viewport preview to a Gaussian object; returns a warning ("" if it worked)."""
+    from . import preview
+
+    try:
+        preview.ensure_preview(obj)
+    except Exception as exc:  # the preview is a convenience: never fail an import for it
+        return f"{obj.name}: viewport preview not added ({exc})"
+    return ""
 
 
 class RECGS_OT_import_ply(bpy.types.Operator, ImportHelper):
@@ -123,8 +146,11 @@ class RECGS_OT_import_ply(bpy.types.Operator, ImportHelper):
             self.report({"WARNING"}, str(w.message))
         obj = gobj.create_gaussian_object(path.stem, g, context.collection)
         obj["recgs_source_ply"] = str(path)
-        _make_active(context, obj)
+        _make_active(context.view_layer, obj)
         self.report({"INFO"}, f"Imported {len(g)} Gaussians (SH degree {g.sh_degree}) from {path}")
+        warning = add_preview(obj)
+        if warning:
+            self.report({"WARNING"}, warning)
         return {"FINISHED"}
 
 

@@ -22,5 +22,21 @@ if len(sys.argv) > 2:  # a COLMAP scene: import it through the installed package
     assert obj is not None and len(obj.data.vertices) > 0 and "f_dc_0" in obj.data.attributes
     installed = [m for m in sys.modules if m.startswith(module + ".recgs_addon.core")]
     assert installed, "core was not loaded from the installed extension"
+    # background jobs run the installed package (python -m recgs_addon, PYTHONPATH set)
+    import os
+    import subprocess
+    import tempfile
+
+    jobs = sys.modules[module + ".recgs_addon.blender.jobs"]
+    ext_dir = os.path.dirname(sys.modules[module].__file__)
+    assert str(jobs.PACKAGE_PARENT) == ext_dir, (jobs.PACKAGE_PARENT, ext_dir)
+    with tempfile.TemporaryDirectory() as tmp:
+        ply = os.path.join(tmp, "g.ply")
+        bpy.ops.recgs.export_ply(filepath=ply)
+        job = jobs.Job("info", jobs.command("info", ply), cwd=tmp)
+        assert job.wait(120) == 0, list(job.stderr_tail)
+        where = subprocess.run([sys.executable, "-c", "import recgs_addon; print(recgs_addon.__file__)"],
+                               env=jobs.job_env(), cwd=tmp, capture_output=True, text=True)
+        assert where.stdout.strip().startswith(ext_dir), (where.stdout, where.stderr)
 addon_utils.disable(module, default_set=True)
 print("EXTENSION-OK")

@@ -1,0 +1,158 @@
+"""Batch mode: import a survey, train, save the .blend and the outputs, without a UI.
+
+    blender -b --python recgs_addon/batch.py -- SCENE_DIR --out OUT_DIR [trainer options]
+    python recgs_addon/batch.py SCENE_DIR --out OUT_DIR [trainer options]     (bpy module)
+
+Trainer options are those of ``python -m recgs_addon train`` (``--mode``, ``--max-minutes``,
+``--iterations``, ``--budget``, ``--downscale``, ...); they become the scene's RecGS settings,
+so the saved .blend remembers them. The job runs in ``OUT_DIR/train`` through the same code
+as the sidebar's Train button (``blender.training``), followed from a loop on the main thread
+with its progress lines forwarded to stderr. Writes:
+
+* ``OUT_DIR/scene.blend``: cameras and the trained Gaussian object (Resume works from it);
+* ``OUT_DIR/point_cloud.ply``: the object exported as a 3DGS PLY;
+* ``OUT_DIR/decaustic/``: the caustic-free photos, when the mode removes caustics;
+* ``OUT_DIR/report.md`` and ``metrics.json`` when the job wrote them.
+
+Exits 0 on success, 1 with a message naming the problem otherwise (2 for bad options).
+Ctrl-C cancels the job cleanly (checkpoint written) and still saves what there is.
+"""
+from __future__ import annotations
+
+import importlib
+import shutil
+import sys
+import time
+from pathlib import Path
+
+if not __package__:  # run as a script: make the package importable (it is this file's folder)
+    _here = Path(__file__).resolve().parent
+    if str(_here.parent) not in sys.path:
+        sys.path.insert(0, str(_here.parent))
+    PACKAGE = _here.name
+else:
+    PACKAGE = __package__
+
+
+def _pkg(name: str):
+    return importlib.import_module(f"{PACKAGE}.{name}")
+
+
+def _argv(argv):
+    if argv is not None:
+        return list(argv)
+    return sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+
+
+def _parser():
+    import argparse
+
+    p = argparse.ArgumentParser(prog="recgs_addon/batch.py", description=__doc__.split("\n\n")[0])
+    _pkg("runner").add_train_arguments(p)
+    return p
+
+
+def extra_train_args(parser, args, handled) -> list[str]:
+    """The options given that the RecGS settings do not hold, as command-line words."""
+    skip = set(handled) | {"scene_dir", "out", "resume", "init_ply", "help"}
+    words = []
+    for action in parser._actions:
+        if not action.option_strings or action.dest in skip:
+            continue
+        value = getattr(args, action.dest, None)
+        if value == action.default:
+            continue
+        flag = max(action.option_strings, key=len)
+        words += [flag] if action.nargs == 0 else [flag, str(value)]
+    return words
+
+
+def log(msg: str) -> None:
+    print(f"batch: {msg}", file=sys.stderr, flush=True)
+
+
+def fail(msg: str) -> int:
+    print(f"batch: error: {msg}", file=sys.stderr, flush=True)
+    return 1
+
+
+def main(argv=None) -> int:
+    parser = _parser()
+    args = parser.parse_args(_argv(argv))
+    if args.resume or args.init_ply:
+        return fail("--resume and --init-ply are not batch options (open scene.blend and use Resume)")
+    try:
+        import bpy
+    except ImportError:
+        return fail("needs Blender (blender -b --python recgs_addon/batch.py -- ...) or the bpy module")
+    scene_dir: Path = args.scene_dir.resolve()
+    out: Path = args.out.resolve()
+    if not scene_dir.is_dir():
+        return fail(f"{scene_dir}: scene folder is missing")
+    t0 = time.perf_counter()
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    addon = _pkg("blender")
+    training = _pkg("blender.training")
+    properties = _pkg("blender.properties")
+    addon.register()
+    try:
+        extra = extra_train_args(parser, args, properties.SETTINGS_OPTIONS)
+        return _run(bpy, training, properties, args, extra, scene_dir, out, t0)
+    finally:
+        addon.unregister()
+
+
+def _run(bpy, training, properties, args, extra: list[str], scene_dir: Path, out: Path, t0: float) -> int:
+    scene = bpy.context.scene
+    s = scene.recgs
+    try:
+        properties.apply_train_args(s, args)
+    except (ValueError, TypeError) as exc:
+        return fail(str(exc))
+    s.out_dir = str(out / "train")
+    images = args.images or "images"
+    try:
+        res = bpy.ops.recgs.import_colmap(directory=str(scene_dir), images=images)
+    except RuntimeError as exc:
+        return fail(str(exc).removeprefix("Error: ").strip())
+    if res != {"FINISHED"}:
+        return fail(f"{scene_dir}: import failed")
+    obj = bpy.context.active_object
+    log(f"imported {scene_dir}: {len(obj.data.vertices)} initial Gaussians")
+    try:
+        log(training.start_training(scene, obj, echo_stderr=True, extra_args=extra))
+        log("job: " + " ".join(training.active_job().job.argv))
+    except (_pkg("core.errors").RecGSError, OSError, ValueError) as exc:  # WorkflowError included
+        return fail(str(exc))
+    try:
+        status = training.wait()
+    except KeyboardInterrupt:
+        log("interrupted: stopping the job (it writes its checkpoint)")
+        training.cancel()
+        status = training.wait()
+    if status == "FAILED":
+        return fail(f"training failed: {training.last_failure or s.message}")
+    obj = bpy.data.objects[obj.name]
+    out.mkdir(parents=True, exist_ok=True)
+    bpy.context.scene.camera = bpy.context.scene.camera or next(
+        (o for o in bpy.data.objects if o.type == "CAMERA"), None)
+    bpy.ops.wm.save_as_mainfile(filepath=str(out / "scene.blend"), check_existing=False)
+    bpy.context.view_layer.objects.active = obj
+    bpy.ops.recgs.export_ply(filepath=str(out / "point_cloud.ply"))
+    job_out = out / "train"
+    copied = []
+    for name in ("decaustic", "report"):  # report/ holds report.md's figures
+        if (job_out / name).is_dir():
+            shutil.copytree(job_out / name, out / name, dirs_exist_ok=True)
+            copied.append(f"{name}/")
+    for name in ("report.md", "metrics.json"):
+        if (job_out / name).is_file():
+            shutil.copy2(job_out / name, out / name)
+            copied.append(name)
+    log(f"{status.lower()}: {s.message}; wrote {out / 'scene.blend'}, {out / 'point_cloud.ply'}"
+        + (f", {', '.join(copied)}" if copied else "") + f" in {time.perf_counter() - t0:.1f} s")
+    return 0 if status == "DONE" else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,145 @@
+"""The sidebar's settings and job status: ``scene.recgs`` (saved with the .blend).
+
+Settings map one to one onto ``python -m recgs_addon train`` options (see
+:func:`train_options`); the status fields are written by the timer that follows the job
+(``training.pump``) and only drawn by the panel.
+"""
+from __future__ import annotations
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+#: Folder settings may be relative to the .blend ("//..."); Blender 4.5+ wants that declared.
+_PATH = {"options": {"PATH_SUPPORTS_BLEND_RELATIVE"}} if bpy.app.version >= (4, 5, 0) else {}
+
+#: Modes that remove caustics (they take the caustic filter size).
+CAUSTIC_MODES = ("recgs", "filter2d", "joint")
+
+MODE_ITEMS = [
+    ("3dgs", "3DGS", "Plain Gaussian Splatting of the photos as they are (caustics included)"),
+    ("recgs", "RecGS", "Gaussian Splatting with recurrent caustic removal (Zhang et al. 2024)"),
+    ("filter2d", "2D Filter", "Remove caustics with the low-pass filter on each photo only, then train"),
+    ("joint", "Joint", "Learn the caustic images together with the Gaussians"),
+    ("oracle", "Oracle", "Train on the survey's caustic-free ground truth (clean/), for comparison"),
+]
+
+STATUS_ITEMS = [
+    ("IDLE", "Idle", "No job has run"),
+    ("RUNNING", "Running", "A job is running"),
+    ("CANCELLING", "Cancelling", "The job was asked to stop and is writing its checkpoint"),
+    ("DONE", "Done", "The last job finished"),
+    ("CANCELLED", "Cancelled", "The last job was cancelled; Resume continues it"),
+    ("FAILED", "Failed", "The last job failed; see the message"),
+]
+
+
+class RecGSSettings(bpy.types.PropertyGroup):
+    # -- scene -------------------------------------------------------------------------------
+    scene_dir: StringProperty(**_PATH, name="Scene Folder", subtype="DIR_PATH",
+                              description="Survey folder holding images/ and a COLMAP model in sparse/0")
+    images: StringProperty(name="Image Folder", default="images",
+                           description="Photo folder inside the scene folder used for import and training")
+    photo_dir: StringProperty(**_PATH, name="Photo Folder", subtype="DIR_PATH",
+                              description="Photos without a COLMAP model: Reconstruct from Photos runs "
+                                          "structure from motion on them and writes the scene folder")
+    link_photos: BoolProperty(name="Link Photos", default=False,
+                              description="Reconstruct: symlink the photos into the scene folder instead "
+                                          "of copying them")
+    # -- training ----------------------------------------------------------------------------
+    mode: EnumProperty(name="Mode", items=MODE_ITEMS, default="recgs",
+                       description="What the job trains")
+    max_minutes: FloatProperty(name="Time Limit", default=10.0, min=0.0, soft_max=600.0, unit="NONE",
+                               description="Wall-clock limit in minutes (0 = none)")
+    budget_auto: BoolProperty(name="Automatic Budget", default=True,
+                              description="Stop adding Gaussians when held-out quality stops improving")
+    budget: IntProperty(name="Budget", default=500_000, min=1, soft_max=5_000_000,
+                        description="Maximum number of Gaussians")
+    downscale: IntProperty(name="Downscale", default=1, min=1, max=32,
+                           description="Train at the photo size divided by this")
+    caustic_k: IntProperty(name="Caustic Filter Size", default=9, min=0, max=63, step=2,
+                           description="Side of the kept low-frequency block of the caustic filter "
+                                       "(odd; 9 keeps -4..+4 cycles per image; 0 = chosen from the "
+                                       "residual spectrum)")
+    # -- advanced ----------------------------------------------------------------------------
+    preset: EnumProperty(name="Preset", default="default",
+                         items=[("default", "Default", "Lean schedule: grows only what the scene needs"),
+                                ("vanilla", "Vanilla", "INRIA's 30k-iteration schedule")])
+    iterations: IntProperty(name="Iterations", default=0, min=0,
+                            description="Upper bound on optimisation steps (0 = the preset's)")
+    sh_degree: IntProperty(name="SH Degree", default=3, min=0, max=3,
+                           description="Cap on the spherical-harmonic degree")
+    seed: IntProperty(name="Seed", default=0, min=0)
+    holdout_every: IntProperty(name="Hold Out Every", default=8, min=0,
+                               description="Hold out every Nth photo for the quality figure (0 = none)")
+    checkpoint_every: FloatProperty(name="Checkpoint Every", default=10.0, min=0.0, soft_max=600.0,
+                                    description="Seconds between checkpoints (and live viewport updates)")
+    device: StringProperty(name="Device", default="cpu", description="cpu, cuda or mps (where torch has them)")
+    eager: BoolProperty(name="No Compilation", default=False,
+                        description="Do not use torch.compile (slower steps, no start-up compile)")
+    out_dir: StringProperty(**_PATH, name="Output Folder", subtype="DIR_PATH",
+                            description="Where the job writes checkpoint, PLY, metrics and images "
+                                        "(empty: recgs_out inside the scene folder)")
+    # -- job status (written by the timer) ----------------------------------------------------
+    status: EnumProperty(name="Status", items=STATUS_ITEMS, default="IDLE")
+    job_kind: StringProperty(name="Job")
+    phase: StringProperty(name="Phase")
+    iteration: IntProperty(name="Iteration", default=0)
+    gaussians: IntProperty(name="Gaussians", default=0)
+    psnr_test: FloatProperty(name="Held-out PSNR", default=-1.0, description="dB; negative: not measured yet")
+    elapsed: FloatProperty(name="Elapsed", default=0.0, description="seconds")
+    eta: FloatProperty(name="Remaining", default=-1.0, description="seconds; negative: unknown")
+    progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
+    message: StringProperty(name="Message")
+
+
+def train_options(s: RecGSSettings) -> dict:
+    """Trainer options (``train_command`` keys) from the settings."""
+    return {
+        "mode": s.mode, "preset": s.preset,
+        "max_minutes": s.max_minutes if s.max_minutes > 0 else None,
+        "iterations": s.iterations if s.iterations > 0 else None,
+        "budget": "auto" if s.budget_auto else s.budget,
+        "downscale": s.downscale, "sh_degree": s.sh_degree, "seed": s.seed,
+        "holdout_every": s.holdout_every, "checkpoint_every": s.checkpoint_every,
+        "device": s.device if s.device and s.device != "cpu" else None,
+        "images": s.images if s.images and s.images != "images" else None,
+        "eager": s.eager,
+        "caustic_k": s.caustic_k if s.mode in CAUSTIC_MODES else None,
+    }
+
+
+#: ``train`` options (argparse dests) that the settings hold; see :func:`apply_train_args`.
+SETTINGS_OPTIONS = ("mode", "preset", "max_minutes", "iterations", "budget", "downscale", "sh_degree", "seed",
+                    "holdout_every", "checkpoint_every", "device", "eager", "caustic_k", "images")
+
+
+def apply_train_args(s: RecGSSettings, args) -> None:
+    """Copy parsed ``train`` arguments (an argparse namespace) into the settings."""
+    for key in ("mode", "preset", "downscale", "sh_degree", "seed", "holdout_every", "checkpoint_every",
+                "device", "eager", "caustic_k"):
+        if getattr(args, key, None) is not None:
+            setattr(s, key, getattr(args, key))
+    s.max_minutes = args.max_minutes or 0.0
+    s.iterations = args.iterations or 0
+    s.budget_auto = str(args.budget) == "auto"
+    if not s.budget_auto:
+        if not str(args.budget).isdigit() or int(args.budget) < 1:
+            raise ValueError(f"--budget must be a number of Gaussians or 'auto', got {args.budget!r}")
+        s.budget = int(args.budget)
+    if getattr(args, "images", None):
+        s.images = str(args.images)
+
+
+classes = (RecGSSettings,)
+
+
+def register() -> None:
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.recgs = PointerProperty(type=RecGSSettings)
+
+
+def unregister() -> None:
+    del bpy.types.Scene.recgs
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)
