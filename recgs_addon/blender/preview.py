@@ -1,0 +1,580 @@
+"""EEVEE preview of a Gaussian object: a Geometry Nodes modifier built in Python.
+
+The modifier "RecGS Preview" runs the node group "RecGS Preview" (one per file, shared by every
+Gaussian object) on the object's mesh, whose vertices carry the INRIA attributes (see
+:mod:`.gaussian_object`). Everything the preview shows is computed in nodes from those
+attributes, so edits (deleted or moved vertices) and live training updates need no extra step:
+
+* ``recgs_color``  (point colour, scene-linear): ``c = max(0, SH_C0 f_dc + 0.5)`` is the
+  trainer's colour, in the sRGB-encoded space of the photos; the sRGB EOTF turns it into the
+  scene-linear radiance Blender renders with. With the *Standard* view transform the render
+  re-encodes it to sRGB, i.e. back to the trainer's space (:func:`match_trainer_colour`).
+* ``recgs_alpha``  = sigmoid(opacity), ``recgs_scale`` = exp(scale_0..2) (the standard
+  deviations, metres), ``recgs_rot`` = the normalised quaternion rot_0..3 (w, x, y, z; a zero
+  quaternion is the identity), ``recgs_radius`` = the geometric mean of the deviations.
+
+Modes:
+
+* ``ELLIPSOIDS``: an ico sphere (subdivision 1) of radius *Extent* (in standard deviations,
+  default 2.5) is instanced on every kept point, rotated by ``recgs_rot`` and scaled by
+  ``recgs_scale``, so in the instance's own (object) coordinates the Gaussian is the unit
+  isotropic one. The material "RecGS Splat" is emission (the trainer's colours are radiance, so
+  no lighting) mixed with transparency by ``alpha = min(0.99, o exp(-b^2 / 2))``, where ``b``
+  is the distance, in instance coordinates, from the instance centre to the viewing ray through
+  the pixel: the peak of the 3D Gaussian along that ray, which is what 3DGS's projected 2D
+  Gaussian is for an affine camera. ``b`` does not change along the ray, so the coarse mesh
+  only has to cover the splat. Back faces are culled (one sample per ray). The surface render
+  method is *Dithered* by default (stochastic transparency: order-independent, exact for
+  intersecting Gaussians, drawn in instanced batches, so about 6x cheaper per Gaussian than
+  blending; noisy until the samples accumulate) or *Blended* (EEVEE sorts the instances back
+  to front like 3DGS's depth sort and draws them one by one: right after one sample, for
+  final renders and small sets).
+* ``POINTS``: the kept vertices become a point cloud of radius *Point Size* x ``recgs_radius``
+  with the opaque material "RecGS Point": fast, no blending.
+
+*Display Ratio* keeps a deterministic fraction of the Gaussians (a random boolean per vertex
+index, fixed seed) in the viewport; renders use them all unless *Ratio in Renders* is set. *Min Opacity* hides
+Gaussians below that opacity everywhere.
+"""
+from __future__ import annotations
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, PointerProperty
+
+from . import gaussian_object as gobj
+
+MODIFIER_NAME = "RecGS Preview"
+NODE_GROUP_NAME = "RecGS Preview"
+SPLAT_MATERIAL = "RecGS Splat"
+POINT_MATERIAL = "RecGS Point"
+#: Bumped whenever the node group or a material changes; older ones are rebuilt in place.
+VERSION = 1
+#: Degree-0 SH constant (core.gaussians.SH_C0), written into the nodes.
+SH_C0 = 0.28209479177387814
+#: Default half-size of the instanced ellipsoid in standard deviations. The Gaussian is cut at
+#: exp(-2.5^2 / 2) = 4.4 % of its peak. Measured against the trainer's render (docs/preview.md):
+#: correlation 0.979 / 0.978 / 0.974 / 0.971 for 2 / 2.5 / 3 / 4 (blended); smaller is faster (less
+#: overdraw), but at 2 the 13.5 % step at the rim shows on large opaque Gaussians.
+DEFAULT_EXTENT = 2.5
+#: A new preview shows about this many Gaussians in the viewport (display ratio below 1 for
+#: larger objects); renders always use every Gaussian.
+DEFAULT_VIEWPORT_GAUSSIANS = 200_000
+#: Smallest standard deviation given to an instance (metres), so that the instance matrix
+#: stays invertible for the shader's object coordinates.
+MIN_SIGMA = 1e-6
+#: 3DGS rules copied by the splat shader: alpha clamped at 0.99 and skipped below 1/255.
+ALPHA_MAX = 0.99
+ALPHA_MIN = 1.0 / 255.0
+
+MODES = (("ELLIPSOIDS", "Ellipsoids", "Instanced ellipsoids shaded as Gaussians (what renders match)"),
+         ("POINTS", "Points", "Opaque points: fast, for large objects and navigation"))
+
+# Modifier inputs: (name, socket type, default, min, max, description).
+_INPUTS = (
+    ("Points", "NodeSocketBool", False, None, None, "Show points instead of ellipsoids"),
+    ("Display Ratio", "NodeSocketFloat", 1.0, 0.0, 1.0, "Fraction of the Gaussians shown in the viewport"),
+    ("Ratio in Renders", "NodeSocketBool", False, None, None,
+     "Apply the display ratio to renders too (quick test renders)"),
+    ("Extent", "NodeSocketFloat", DEFAULT_EXTENT, 0.5, 6.0,
+     "Half-size of the ellipsoids in standard deviations"),
+    ("Point Size", "NodeSocketFloat", 1.0, 0.0, 10.0, "Point radius in standard deviations"),
+    ("Min Opacity", "NodeSocketFloat", 0.0, 0.0, 1.0, "Hide Gaussians below this opacity"),
+    ("Splat Material", "NodeSocketMaterial", None, None, None, "Material of the ellipsoids"),
+    ("Point Material", "NodeSocketMaterial", None, None, None, "Material of the points"),
+)
+
+
+# ---------------------------------------------------------------------------------------
+# Node building helpers
+# ---------------------------------------------------------------------------------------
+
+class _Builder:
+    """Small helper to add and link nodes with less noise."""
+
+    def __init__(self, tree):
+        self.tree = tree
+        self.x = 0
+
+    def node(self, idname, inputs=None, **props):
+        n = self.tree.nodes.new(idname)
+        for k, v in props.items():
+            setattr(n, k, v)
+        for key, v in (inputs or {}).items():
+            sock = n.inputs[key]
+            if isinstance(v, bpy.types.NodeSocket):
+                self.tree.links.new(v, sock)
+            else:
+                sock.default_value = v
+        n.location = (self.x, 0)
+        self.x += 180
+        return n
+
+    def math(self, op, a, b=None, c=None):
+        ins = {0: a}
+        if b is not None:
+            ins[1] = b
+        if c is not None:
+            ins[2] = c
+        return self.node("ShaderNodeMath", ins, operation=op).outputs[0]
+
+    def link(self, a, b):
+        self.tree.links.new(a, b)
+
+
+def _attr(b: _Builder, name: str, data_type: str = "FLOAT"):
+    return b.node("GeometryNodeInputNamedAttribute", {"Name": name}, data_type=data_type).outputs["Attribute"]
+
+
+def _store(b: _Builder, geometry, name: str, data_type: str, value):
+    n = b.node("GeometryNodeStoreNamedAttribute", {"Geometry": geometry, "Name": name},
+               data_type=data_type, domain="POINT")
+    b.link(value, n.inputs["Value"])
+    return n.outputs["Geometry"]
+
+
+def _srgb_to_linear(b: _Builder, c):
+    """sRGB EOTF of a non-negative float: c/12.92 below 0.04045, ((c+0.055)/1.055)^2.4 above."""
+    low = b.math("DIVIDE", c, 12.92)
+    high = b.math("POWER", b.math("MULTIPLY_ADD", c, 1.0 / 1.055, 0.055 / 1.055), 2.4)
+    above = b.node("FunctionNodeCompare", {"A": c, "B": 0.04045}, data_type="FLOAT",
+                   operation="GREATER_THAN").outputs["Result"]
+    sw = b.node("GeometryNodeSwitch", {"Switch": above, "False": low, "True": high}, input_type="FLOAT")
+    return sw.outputs[0]
+
+
+def _set_menu(node, socket_name: str, value: str) -> None:
+    """Set a menu input (Blender 5: socket) or the older node property of the same meaning."""
+    if socket_name in node.inputs:
+        node.inputs[socket_name].default_value = value
+    else:  # Blender 4.2-4.x: a node property, upper-case identifier
+        setattr(node, socket_name.lower().replace(" ", "_"), value.upper())
+
+
+def _build_interface(ng) -> None:
+    """Make the group's sockets exactly ``_INPUTS``, keeping the existing ones (and so their
+    identifiers, under which modifiers store their values) where name and type match."""
+    wanted = [("Geometry", "NodeSocketGeometry", "INPUT")]
+    wanted += [(name, stype, "INPUT") for name, stype, *_ in _INPUTS]
+    wanted += [("Geometry", "NodeSocketGeometry", "OUTPUT")]
+    items = [i for i in ng.interface.items_tree if i.item_type == "SOCKET"]
+    for item in items:
+        if (item.name, item.socket_type, item.in_out) not in wanted:
+            ng.interface.remove(item)
+    have = {(i.name, i.socket_type, i.in_out): i for i in ng.interface.items_tree if i.item_type == "SOCKET"}
+    for key in wanted:
+        if key not in have:
+            have[key] = ng.interface.new_socket(key[0], in_out=key[2], socket_type=key[1])
+    for pos, key in enumerate(k for k in wanted if k[2] == "INPUT"):
+        ng.interface.move(have[key], pos + 1)  # outputs are listed first
+    for name, stype, default, lo, hi, desc in _INPUTS:
+        s = have[(name, stype, "INPUT")]
+        s.description = desc
+        if default is not None:
+            s.default_value = default
+        if lo is not None:
+            s.min_value, s.max_value = lo, hi
+
+
+def _build_node_group(ng) -> None:
+    ng.nodes.clear()
+    _build_interface(ng)
+
+    b = _Builder(ng)
+    gi = b.node("NodeGroupInput")
+    geo = gi.outputs["Geometry"]
+
+    # Derived attributes, computed from the INRIA ones on the mesh points.
+    rgb = []
+    for i in range(3):
+        c = b.math("MAXIMUM", b.math("MULTIPLY_ADD", _attr(b, f"f_dc_{i}"), SH_C0, 0.5), 0.0)
+        rgb.append(_srgb_to_linear(b, c))
+    colour = b.node("FunctionNodeCombineColor", {"Red": rgb[0], "Green": rgb[1], "Blue": rgb[2]}).outputs[0]
+    geo = _store(b, geo, "recgs_color", "FLOAT_COLOR", colour)
+    alpha = b.math("DIVIDE", 1.0, b.math("ADD", 1.0, b.math("EXPONENT", b.math("MULTIPLY", _attr(b, "opacity"), -1.0))))
+    geo = _store(b, geo, "recgs_alpha", "FLOAT", alpha)
+    logs = [_attr(b, f"scale_{i}") for i in range(3)]
+    sig = [b.math("MAXIMUM", b.math("EXPONENT", s), MIN_SIGMA) for s in logs]
+    geo = _store(b, geo, "recgs_scale", "FLOAT_VECTOR",
+                 b.node("ShaderNodeCombineXYZ", {"X": sig[0], "Y": sig[1], "Z": sig[2]}).outputs[0])
+    mean_log = b.math("DIVIDE", b.math("ADD", b.math("ADD", logs[0], logs[1]), logs[2]), 3.0)
+    geo = _store(b, geo, "recgs_radius", "FLOAT", b.math("MAXIMUM", b.math("EXPONENT", mean_log), MIN_SIGMA))
+    q = b.node("FunctionNodeQuaternionToRotation")  # normalises; a zero quaternion is the identity
+    for i, key in enumerate("WXYZ"):
+        b.link(_attr(b, f"rot_{i}"), q.inputs[key])
+    geo = _store(b, geo, "recgs_rot", "QUATERNION", q.outputs[0])
+    # Drop the raw attributes (up to 59 per vertex) so instancing does not copy them.
+    for pattern in ("f_dc_*", "f_rest_*", "scale_*", "rot_*", "opacity"):
+        rm = b.node("GeometryNodeRemoveAttribute", {"Geometry": geo, "Name": pattern})
+        _set_menu(rm, "Pattern Mode", "Wildcard")
+        geo = rm.outputs[0]
+
+    # Which Gaussians are shown: a deterministic fraction in the viewport, opacity cut.
+    rnd = b.node("FunctionNodeRandomValue", {"ID": b.node("GeometryNodeInputIndex").outputs[0], "Seed": 0},
+                 data_type="BOOLEAN")
+    b.link(gi.outputs["Display Ratio"], rnd.inputs["Probability"])
+    all_in_render = b.node("FunctionNodeBooleanMath", {0: b.node("GeometryNodeIsViewport").outputs[0]},
+                           operation="NOR")  # a render that ignores the ratio
+    b.link(gi.outputs["Ratio in Renders"], all_in_render.inputs[1])
+    in_render = all_in_render.outputs[0]
+    shown = b.node("FunctionNodeBooleanMath", {0: rnd.outputs[3], 1: in_render}, operation="OR").outputs[0]
+    opaque = b.node("FunctionNodeCompare", {"A": _attr(b, "recgs_alpha")}, data_type="FLOAT",
+                    operation="GREATER_EQUAL")
+    b.link(gi.outputs["Min Opacity"], opaque.inputs["B"])
+    keep = b.node("FunctionNodeBooleanMath", {0: shown, 1: opaque.outputs["Result"]}, operation="AND").outputs[0]
+
+    # Ellipsoids.
+    ico = b.node("GeometryNodeMeshIcoSphere", {"Subdivisions": 1})
+    b.link(gi.outputs["Extent"], ico.inputs["Radius"])
+    ico_mat = b.node("GeometryNodeSetMaterial", {"Geometry": ico.outputs["Mesh"]})
+    b.link(gi.outputs["Splat Material"], ico_mat.inputs["Material"])
+    inst = b.node("GeometryNodeInstanceOnPoints", {
+        "Points": geo, "Selection": keep, "Instance": ico_mat.outputs[0],
+        "Rotation": _attr(b, "recgs_rot", "QUATERNION"), "Scale": _attr(b, "recgs_scale", "FLOAT_VECTOR")})
+    # Points.
+    radius = b.math("MULTIPLY", _attr(b, "recgs_radius"))
+    b.link(gi.outputs["Point Size"], radius.node.inputs[1])
+    pts = b.node("GeometryNodeMeshToPoints", {"Mesh": geo, "Selection": keep, "Radius": radius})
+    pts_mat = b.node("GeometryNodeSetMaterial", {"Geometry": pts.outputs[0]})
+    b.link(gi.outputs["Point Material"], pts_mat.inputs["Material"])
+
+    sw = b.node("GeometryNodeSwitch", {"False": inst.outputs[0], "True": pts_mat.outputs[0]},
+                input_type="GEOMETRY")
+    b.link(gi.outputs["Points"], sw.inputs["Switch"])
+    go = b.node("NodeGroupOutput")
+    b.link(sw.outputs[0], go.inputs[0])
+    ng["recgs_preview_version"] = VERSION
+
+
+def _build_splat_material(mat) -> None:
+    if mat.node_tree is None:  # Blender < 5 (use_nodes is deprecated in 5.0, always on)
+        mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    b = _Builder(nt)
+    colour = b.node("ShaderNodeAttribute", attribute_type="INSTANCER", attribute_name="recgs_color")
+    opacity = b.node("ShaderNodeAttribute", attribute_type="INSTANCER", attribute_name="recgs_alpha")
+    p = b.node("ShaderNodeTexCoord").outputs["Object"]  # instance space: the Gaussian is N(0, I)
+    view = b.node("ShaderNodeVectorTransform", {"Vector": b.node("ShaderNodeNewGeometry").outputs["Incoming"]},
+                  vector_type="VECTOR", convert_from="WORLD", convert_to="OBJECT").outputs[0]
+    v = b.node("ShaderNodeVectorMath", {0: view}, operation="NORMALIZE").outputs[0]
+    pp = b.node("ShaderNodeVectorMath", {0: p, 1: p}, operation="DOT_PRODUCT").outputs["Value"]
+    pv = b.node("ShaderNodeVectorMath", {0: p, 1: v}, operation="DOT_PRODUCT").outputs["Value"]
+    b2 = b.math("SUBTRACT", pp, b.math("MULTIPLY", pv, pv))  # squared distance of the ray to the centre
+    a = b.math("MULTIPLY", opacity.outputs["Fac"], b.math("EXPONENT", b.math("MULTIPLY", b2, -0.5)))
+    a = b.math("MINIMUM", a, ALPHA_MAX)
+    a = b.math("MULTIPLY", a, b.math("GREATER_THAN", a, ALPHA_MIN))
+    emit = b.node("ShaderNodeEmission", {"Strength": 1.0})
+    b.link(colour.outputs["Color"], emit.inputs["Color"])
+    mix = b.node("ShaderNodeMixShader", {0: a, 1: b.node("ShaderNodeBsdfTransparent").outputs[0], 2: emit.outputs[0]})
+    out = b.node("ShaderNodeOutputMaterial")
+    b.link(mix.outputs[0], out.inputs["Surface"])
+    mat.use_backface_culling = True  # one sample per viewing ray
+    if mat.get("recgs_preview_version") is None:  # a new material; later the artist's choice
+        mat.surface_render_method = "DITHERED"
+    mat.diffuse_color = (0.8, 0.8, 0.8, 1.0)
+    mat["recgs_preview_version"] = VERSION
+
+
+def _build_point_material(mat) -> None:
+    if mat.node_tree is None:  # Blender < 5 (use_nodes is deprecated in 5.0, always on)
+        mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    b = _Builder(nt)
+    colour = b.node("ShaderNodeAttribute", attribute_type="GEOMETRY", attribute_name="recgs_color")
+    emit = b.node("ShaderNodeEmission", {"Strength": 1.0})
+    b.link(colour.outputs["Color"], emit.inputs["Color"])
+    out = b.node("ShaderNodeOutputMaterial")
+    b.link(emit.outputs[0], out.inputs["Surface"])
+    mat["recgs_preview_version"] = VERSION
+
+
+def _ensure_datablock(collection, name, builder, *args):
+    block = collection.get(name)
+    if block is None:
+        block = collection.new(name, *args)
+    if block.get("recgs_preview_version") != VERSION:
+        builder(block)
+    return block
+
+
+def node_group():
+    """The shared preview node group (built or rebuilt in place when missing or outdated)."""
+    return _ensure_datablock(bpy.data.node_groups, NODE_GROUP_NAME, _build_node_group, "GeometryNodeTree")
+
+
+def splat_material():
+    return _ensure_datablock(bpy.data.materials, SPLAT_MATERIAL, _build_splat_material)
+
+
+def point_material():
+    return _ensure_datablock(bpy.data.materials, POINT_MATERIAL, _build_point_material)
+
+
+# ---------------------------------------------------------------------------------------
+# Modifier access
+# ---------------------------------------------------------------------------------------
+
+def preview_modifier(obj):
+    """The object's preview modifier, or None."""
+    if obj is None:
+        return None
+    mod = obj.modifiers.get(MODIFIER_NAME)
+    return mod if mod is not None and mod.type == "NODES" else None
+
+
+def _identifier(ng, name: str) -> str:
+    for item in ng.interface.items_tree:
+        if item.item_type == "SOCKET" and item.in_out == "INPUT" and item.name == name:
+            return item.identifier
+    raise KeyError(name)
+
+
+def get_input(obj, name: str, default=None):
+    """A preview modifier input's value (``default`` without a preview)."""
+    mod = preview_modifier(obj)
+    if mod is None or mod.node_group is None:
+        return default
+    try:
+        return mod[_identifier(mod.node_group, name)]
+    except KeyError:
+        return default
+
+
+def set_input(obj, name: str, value) -> None:
+    mod = preview_modifier(obj)
+    if mod is None:
+        raise ValueError(f"'{obj.name}' has no preview; add it with ensure_preview")
+    key = _identifier(mod.node_group, name)
+    if mod.get(key) != value:
+        mod[key] = value
+        obj.update_tag()
+
+
+def ensure_preview(obj, mode=None, display_ratio=None):
+    """Add or update the preview modifier, node group and materials of a Gaussian object.
+
+    Idempotent. ``mode`` ('ELLIPSOIDS' or 'POINTS') and ``display_ratio`` (0..1, viewport
+    only) set those settings; None keeps the current ones (a new preview starts with
+    ellipsoids and a ratio showing about :data:`DEFAULT_VIEWPORT_GAUSSIANS`). The modifier is
+    kept last, so it sees every other modifier's output. Returns the modifier.
+    """
+    if not gobj.is_gaussian_object(obj):
+        raise ValueError(f"'{getattr(obj, 'name', obj)}' is not a Gaussian object")
+    if mode is not None and mode not in {m[0] for m in MODES}:
+        raise ValueError(f"unknown preview mode {mode!r}")
+    ng = node_group()
+    mod = preview_modifier(obj)
+    new = mod is None
+    if new:
+        mod = obj.modifiers.new(MODIFIER_NAME, "NODES")
+        mod.show_in_editmode = True
+        mod.show_on_cage = False
+    if mod.node_group is not ng:
+        mod.node_group = ng
+    while obj.modifiers[-1] != mod:  # stay last
+        obj.modifiers.move(list(obj.modifiers).index(mod), len(obj.modifiers) - 1)
+    if new:
+        n = len(obj.data.vertices)
+        set_input(obj, "Display Ratio", min(1.0, DEFAULT_VIEWPORT_GAUSSIANS / max(n, 1)))
+    if get_input(obj, "Splat Material") is None:
+        set_input(obj, "Splat Material", splat_material())
+    if get_input(obj, "Point Material") is None:
+        set_input(obj, "Point Material", point_material())
+    if mode is not None:
+        set_input(obj, "Points", mode == "POINTS")
+    if display_ratio is not None:
+        set_input(obj, "Display Ratio", float(min(max(display_ratio, 0.0), 1.0)))
+    # Materials are also slots of the object, so the viewport and exporters list them.
+    for mat in (get_input(obj, "Splat Material"), get_input(obj, "Point Material")):
+        if mat is not None and mat.name not in obj.data.materials:
+            obj.data.materials.append(mat)
+    obj.update_tag()
+    return mod
+
+
+def remove_preview(obj) -> None:
+    """Remove the preview modifier (the shared node group and materials stay in the file)."""
+    mod = preview_modifier(obj)
+    if mod is not None:
+        obj.modifiers.remove(mod)
+    for name in (SPLAT_MATERIAL, POINT_MATERIAL):
+        i = obj.data.materials.find(name)
+        if i >= 0:
+            obj.data.materials.pop(index=i)
+
+
+def preview_mode(obj):
+    """'ELLIPSOIDS', 'POINTS', or None without a preview."""
+    if preview_modifier(obj) is None:
+        return None
+    return "POINTS" if get_input(obj, "Points", False) else "ELLIPSOIDS"
+
+
+def match_trainer_colour(scene) -> None:
+    """Colour settings under which renders show the trainer's colours: the Standard view
+    transform (plain sRGB encoding), no look, exposure 0, gamma 1, a black world."""
+    vs = scene.view_settings
+    vs.view_transform = "Standard"
+    vs.look = "None"
+    vs.exposure = 0.0
+    vs.gamma = 1.0
+    scene.display_settings.display_device = "sRGB"
+    if scene.world is None:
+        scene.world = bpy.data.worlds.new("RecGS Black")
+    world = scene.world
+    world.color = (0.0, 0.0, 0.0)
+    if world.node_tree is not None:
+        bg = next((n for n in world.node_tree.nodes if n.type == "BACKGROUND"), None)
+        if bg is not None:
+            bg.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+
+
+# ---------------------------------------------------------------------------------------
+# Per-object settings (a view of the modifier inputs: nothing is stored twice)
+# ---------------------------------------------------------------------------------------
+
+def _getter(name, default):
+    def get(self):
+        return get_input(self.id_data, name, default)
+    return get
+
+
+def _setter(name):
+    def set_(self, value):
+        obj = self.id_data
+        if preview_modifier(obj) is None:
+            ensure_preview(obj)
+        set_input(obj, name, value)
+    return set_
+
+
+def _get_mode(self):
+    return 1 if get_input(self.id_data, "Points", False) else 0
+
+
+def _set_mode(self, value):
+    ensure_preview(self.id_data, mode=MODES[value][0])
+
+
+class RecGSPreviewSettings(bpy.types.PropertyGroup):
+    """Preview settings of one Gaussian object (stored in its preview modifier)."""
+
+    mode: EnumProperty(name="Mode", items=MODES, get=_get_mode, set=_set_mode)
+    display_ratio: FloatProperty(name="Display Ratio", min=0.0, max=1.0, subtype="FACTOR",
+                                 get=_getter("Display Ratio", 1.0), set=_setter("Display Ratio"),
+                                 description="Fraction of the Gaussians shown in the viewport "
+                                             "(renders use all)")
+    ratio_in_renders: BoolProperty(name="Ratio in Renders", get=_getter("Ratio in Renders", False),
+                                   set=_setter("Ratio in Renders"),
+                                   description="Apply the display ratio to renders too (quick test renders)")
+    extent: FloatProperty(name="Extent", min=0.5, max=6.0, get=_getter("Extent", DEFAULT_EXTENT),
+                          set=_setter("Extent"),
+                          description="Half-size of the ellipsoids in standard deviations")
+    point_size: FloatProperty(name="Point Size", min=0.0, max=10.0, get=_getter("Point Size", 1.0),
+                              set=_setter("Point Size"),
+                              description="Point radius in standard deviations")
+    min_opacity: FloatProperty(name="Min Opacity", min=0.0, max=1.0, subtype="FACTOR",
+                               get=_getter("Min Opacity", 0.0), set=_setter("Min Opacity"),
+                               description="Hide Gaussians below this opacity")
+
+
+def _active_gaussians(context):
+    obj = context.active_object
+    return obj if gobj.is_gaussian_object(obj) else None
+
+
+class RECGS_OT_preview_add(bpy.types.Operator):
+    """Add (or update) the EEVEE preview of the active Gaussian object"""
+
+    bl_idname = "recgs.preview_add"
+    bl_label = "Add Preview"
+    bl_options = {"REGISTER", "UNDO"}
+
+    mode: EnumProperty(name="Mode", items=MODES, default="ELLIPSOIDS")
+
+    @classmethod
+    def poll(cls, context):
+        return _active_gaussians(context) is not None
+
+    def execute(self, context):
+        obj = _active_gaussians(context)
+        ensure_preview(obj, mode=self.mode)
+        self.report({"INFO"}, f"Preview of {len(obj.data.vertices)} Gaussians "
+                              f"({self.mode.lower()}, display ratio {get_input(obj, 'Display Ratio'):.3g})")
+        return {"FINISHED"}
+
+
+class RECGS_OT_preview_remove(bpy.types.Operator):
+    """Remove the EEVEE preview of the active Gaussian object"""
+
+    bl_idname = "recgs.preview_remove"
+    bl_label = "Remove Preview"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return preview_modifier(context.active_object) is not None
+
+    def execute(self, context):
+        remove_preview(context.active_object)
+        return {"FINISHED"}
+
+
+class RECGS_OT_match_trainer_colour(bpy.types.Operator):
+    """Standard view transform and a black world, so renders show the trainer's colours"""
+
+    bl_idname = "recgs.match_trainer_colour"
+    bl_label = "Match Trainer Colours"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        match_trainer_colour(context.scene)
+        return {"FINISHED"}
+
+
+def draw_panel(layout, context) -> None:
+    """Preview settings of the active object and the selection operators."""
+    obj = _active_gaussians(context)
+    if obj is None:
+        layout.label(text="Select a Gaussian object", icon="INFO")
+        return
+    col = layout.column(align=True)
+    if preview_modifier(obj) is None:
+        col.operator(RECGS_OT_preview_add.bl_idname, icon="SHADING_RENDERED")
+    else:
+        s = obj.recgs_preview
+        col.row(align=True).prop(s, "mode", expand=True)
+        row = col.row(align=True)
+        row.prop(s, "display_ratio")
+        row.prop(s, "ratio_in_renders", text="", icon="RESTRICT_RENDER_OFF")
+        col.prop(s, "extent" if s.mode == "ELLIPSOIDS" else "point_size")
+        col.prop(s, "min_opacity")
+        mat = get_input(obj, "Splat Material")
+        if s.mode == "ELLIPSOIDS" and mat is not None and hasattr(mat, "surface_render_method"):
+            col.prop(mat, "surface_render_method", text="Blending")
+        row = col.row(align=True)
+        row.operator(RECGS_OT_match_trainer_colour.bl_idname, icon="COLOR")
+        row.operator(RECGS_OT_preview_remove.bl_idname, text="", icon="X")
+    from . import select_ops
+
+    select_ops.draw_select(layout.column(align=True), context)
+
+
+from . import select_ops as _select_ops  # noqa: E402  (operators registered with the preview)
+
+classes = (RecGSPreviewSettings, RECGS_OT_preview_add, RECGS_OT_preview_remove,
+           RECGS_OT_match_trainer_colour) + _select_ops.classes
+
+
+def register() -> None:
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.Object.recgs_preview = PointerProperty(type=RecGSPreviewSettings)
+
+
+def unregister() -> None:
+    if hasattr(bpy.types.Object, "recgs_preview"):
+        del bpy.types.Object.recgs_preview
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)
