@@ -85,7 +85,7 @@ class TrainConfig:
     mode: str = "3dgs"
     caustic_k: int = 9                   # low-pass block size (odd); 0 = choose from the residual spectrum
     caustic_model: str = "additive"      # additive: I - C (paper) | multiplicative: I / exp(C_log)
-    warmup: int = 1500                   # recgs: at most this many plain steps before the first recurrence
+    warmup: int = 1000                   # recgs: at most this many plain steps before the first recurrence
     recurrence_steps: int = 200          # recgs: optimisation steps per recurrence
     max_recurrences: int = 40
     recurrence_tol: float = 0.05         # stop when mean |dC| / mean |C| falls below this
