@@ -573,7 +573,9 @@ class Trainer:
         self.budget, self.growth_frozen = s["budget"], s["growth_frozen"]
         self.sh_degree, self.sh_state = s["sh_degree"], s["sh_state"]
         self.best_psnr, self.since_best = s["best_psnr"], s["since_best"]
-        self.reset_done, self.done_reason = s["reset_done"], s["done_reason"]
+        self.reset_done = s["reset_done"]
+        # limits are checked again against this run's settings (a resume may raise them)
+        self.done_reason = None if s["done_reason"] in ("iteration limit", "time limit") else s["done_reason"]
 
 
 def _image_dir(scene_dir: Path, images) -> Path:
