@@ -336,7 +336,10 @@ print("RESULT", json.dumps({{"gaussian_objects": len(objs), "n": len(g), "ply": 
     "same": bool((g.means == ply.means).all()),
     "cameras": len([o for o in bpy.data.objects if o.type == "CAMERA"]),
     "mode": bpy.context.scene.recgs.mode, "iterations": bpy.context.scene.recgs.iterations,
-    "out_dir": objs[0]["recgs_out_dir"]}}))
+    "out_dir": objs[0]["recgs_out_dir"],
+    "modifiers": [(m.type, m.node_group.name if m.type == "NODES" and m.node_group else None)
+                  for m in objs[0].modifiers],
+    "materials": sorted(m.name for m in bpy.data.materials if m.users)}}))
 """
     r2 = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r2.returncode == 0, r2.stderr[-3000:]
@@ -344,6 +347,8 @@ print("RESULT", json.dumps({{"gaussian_objects": len(objs), "n": len(g), "ply": 
     assert res["gaussian_objects"] == 1 and res["n"] == res["ply"] > 0 and res["same"]
     assert res["cameras"] == 8 and res["mode"] == "3dgs" and res["iterations"] == 20
     assert res["out_dir"] == str(out / "train")
+    assert [m for m in res["modifiers"] if m[0] == "NODES" and m[1]], res["modifiers"]  # the preview
+    assert res["materials"], "the preview's material was not saved"
 
 
 @pytest.mark.parametrize("case", ["missing", "no model"])
