@@ -114,6 +114,7 @@ def run_train(args) -> int:
     from .core.checkpoint import load_checkpoint, save_checkpoint
     from .core.ply import read_gaussian_ply, write_gaussian_ply
     from .core.outputs import write_outputs
+    from .core.report import write_run_report
     from .core.train import TrainConfig, default_gt_dir, make_trainer, preset
 
     torch.set_num_threads(max(1, torch.get_num_threads()))
@@ -205,8 +206,6 @@ def run_train(args) -> int:
     tmp = out / ".metrics.json.tmp"
     tmp.write_text(json.dumps(_finite_tree(metrics), indent=2, allow_nan=False, default=_json_default))
     tmp.replace(out / "metrics.json")
-    from .core.report import write_run_report
-
     report = write_run_report(out, metrics, trainer)
     _emit("done", report=str(report),
           **{k: v for k, v in metrics.items() if k not in ("history", "config", "recurrences")})
@@ -231,12 +230,13 @@ def run_render(args) -> int:
     from .core.losses import psnr
     from .core.ply import read_gaussian_ply
     from .core.rasterizer import render
+    from .core.train import resolve_image_dir
 
     try:
         g = read_gaussian_ply(args.model)
         image_dir = None
         if args.images:
-            image_dir = Path(args.images) if Path(args.images).is_absolute() else args.scene_dir / args.images
+            image_dir = resolve_image_dir(args.scene_dir, args.images)
         scene = load_scene(args.scene_dir, image_dir=image_dir)
         cams = scene.cameras
         if args.names:

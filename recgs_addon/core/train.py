@@ -578,7 +578,7 @@ class Trainer:
         self.done_reason = None if s["done_reason"] in ("iteration limit", "time limit") else s["done_reason"]
 
 
-def _image_dir(scene_dir: Path, images) -> Path:
+def resolve_image_dir(scene_dir: Path, images) -> Path:
     """An image folder given absolute, relative to the working directory, or by its name
     inside the scene folder (``clean``)."""
     p = Path(images)
@@ -607,13 +607,13 @@ def make_trainer(scene_dir: str | Path, cfg: TrainConfig, images: Optional[str |
                              "clean/ folder (pass --gt-images DIR)")
         images = gt_images
     if images is not None:
-        image_dir = _image_dir(scene_dir, images)
+        image_dir = resolve_image_dir(scene_dir, images)
         if image_dir.is_dir() and not any(image_dir.iterdir()):
             raise RecGSError(f"{image_dir}: image folder is empty")
     elif (scene_dir / "images").is_dir() and not any((scene_dir / "images").iterdir()):
         raise RecGSError(f"{scene_dir / 'images'}: image folder is empty")
     scene = load_scene(scene_dir, image_dir=image_dir)
-    gt_scene = load_scene(scene_dir, image_dir=_image_dir(scene_dir, gt_images)) if gt_images is not None else None
+    gt_scene = load_scene(scene_dir, image_dir=resolve_image_dir(scene_dir, gt_images)) if gt_images is not None else None
     data = TrainData(scene, cfg.downscale, cfg.holdout_every, cfg.device, gt_scene=gt_scene)
     if cfg.mode in ("recgs", "filter2d", "joint"):
         from .recgs import CausticTrainer
