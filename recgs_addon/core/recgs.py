@@ -3,24 +3,33 @@
 ``CausticTrainer`` is the :class:`~.train.Trainer` with caustic-free targets, by ``cfg.mode``:
 
 * ``recgs``: train plain 3DGS on the captured images I (warm-up: until held-out PSNR
-  plateaus or ``cfg.warmup`` steps), then recur: render every training view, low-pass the
-  residual ``R = I - render`` (core/caustics.py) into the caustic estimate ``C``, train
-  ``cfg.recurrence_steps`` steps against ``I - C``, and repeat until ``C`` stops changing
-  (``mean |C_new - C_old| / mean |C_new| < cfg.recurrence_tol``), until ``C`` is negligible
-  (``mean |C| < cfg.caustic_floor``: a survey without caustics stops after one round), or at
-  the time/iteration limit. ``cfg.caustic_model = "multiplicative"`` estimates a log-gain
+  plateaus, ``cfg.warmup`` steps, or ``cfg.warmup_share`` of the time limit), then recur:
+  render every training view, low-pass the residual ``R = I - render`` (core/caustics.py)
+  into the caustic estimate ``C``, train ``cfg.recurrence_steps`` steps against ``I - C``, and
+  repeat until ``C`` stops changing (``mean |C_new - C_old| / mean |C_new| <
+  cfg.recurrence_tol``), or at ``cfg.max_recurrences`` or the time/iteration limit.
+  ``cfg.caustic_model = "multiplicative"`` estimates a log-gain
   ``L = lowpass(log(I + e) - log(render + e))`` and fits ``(I + e) exp(-L) - e`` instead,
   since caustics modulate the light; ``cfg.caustic_k = 0`` picks the block size from the
   residual spectrum at the first recurrence (``caustics.choose_k``).
+
+  Do no harm: C is *dropped* (the plain model the recurrences started from comes back and
+  trains on as plain 3DGS, stage ``settle``) when it is negligible (``mean |C| <
+  cfg.caustic_floor``), when it does not settle (its change shrinks by less than
+  ``cfg.stall_ratio`` per round: an estimate of a caustic field converges geometrically, one
+  that follows model error keeps growing, which is what happens without caustics), or when
+  ``cfg.recurrence_patience`` rounds in a row score more than ``cfg.harm_tol`` dB below the
+  plain model on the held-out views against the captured photos (``heldout_score``).
 * ``filter2d``: fit ``I - lowpass(I - mean I)`` per image from the start (no 3D reasoning).
 * ``joint``: learn a per-image ``k x k`` Fourier field with the Gaussians, fitting
   ``render + field_i`` to ``I`` (the alternative the paper reports as failing: the fields and
   the Gaussians trade the low frequencies of the scene between them).
 
-Held-out views are scored for the run's own decisions (plateau, growth, SH) against the
-held-out image with its caustics compensated the same way (``I - lowpass(I - render)``), so
-moving light does not read as model error; scores against ground truth come from
-``TrainData.gt_view`` and are only reported.
+Held-out views are scored for the run's growth, SH and plateau decisions against the held-out
+image with its caustics compensated the same way (``I - lowpass(I - render)``), so moving
+light does not read as model error; the do-no-harm test uses the photos as captured, since
+compensation would hide the low-frequency drift it looks for. Scores against ground truth
+come from ``TrainData.gt_view`` and are only reported.
 """
 from __future__ import annotations
 
@@ -28,7 +37,8 @@ from typing import Optional
 
 import torch
 
-from . import caustics
+from . import caustics, density
+from .losses import psnr
 from .train import Trainer
 
 #: Offset (in [0, 1] intensity) inside the logarithms of the multiplicative model.
@@ -46,6 +56,12 @@ class CausticTrainer(Trainer):
         self.rec_history: list[dict] = []
         self.next_due: Optional[int] = None
         self.stage = "warmup" if cfg.mode == "recgs" else cfg.mode
+        #: recgs: the plain model the recurrences start from (``score``: held-out PSNR against
+        #: the captured images; ``params``, ``sh_degree``), and rounds in a row that scored worse
+        self.plain: Optional[dict] = None
+        self.misses = 0
+        self.dropped = False  # C was dropped (see _drop), and why
+        self.drop_reason: Optional[str] = None
         self.fields = None
         if cfg.mode == "filter2d":
             self._set_filter2d_targets()
@@ -112,26 +128,111 @@ class CausticTrainer(Trainer):
 
     def _schedule(self) -> None:
         c = self.cfg
-        if self.stage == "warmup" and self.step >= c.warmup:
+        if self.stage == "warmup" and (self.step >= c.warmup or self._warmup_time_up()):
             self._start_recurrences()
         if self.stage != "recurrence" or self.next_due is None or self.step < self.next_due:
             return
+        if self.recurrence and self._judge_round():
+            return
         entry = self.recur()
+        prev = self.rec_history[-2]["c_change"] if len(self.rec_history) >= 2 else None
         if entry["mean_abs_c"] < c.caustic_floor:
-            self.done_reason = f"no caustics left to remove (mean |C| {entry['mean_abs_c']:.4f})"
+            self._drop(f"no caustics to remove (mean |C| {entry['mean_abs_c']:.4f})")
         elif entry["c_change"] < c.recurrence_tol:
             self.done_reason = f"caustic estimate converged (change {entry['c_change']:.3f})"
+        elif prev is not None and entry["c_change"] > max(c.stall_ratio * prev, 2 * c.recurrence_tol):
+            # a caustic field's estimate settles geometrically; one that keeps changing follows
+            # model error (it grows round after round on surveys without caustics)
+            self._drop(f"caustic estimate is not settling (change {prev:.3f} -> {entry['c_change']:.3f})")
         elif self.recurrence >= c.max_recurrences:
             self.done_reason = "recurrence limit"
-        self.next_due = None if self.done_reason else self.step + c.recurrence_steps
+        if self.stage == "recurrence":
+            self.next_due = None if self.done_reason else self.step + c.recurrence_steps
+
+    def _warmup_time_up(self) -> bool:
+        """With a time limit, the warm-up gets at most ``warmup_share`` of it."""
+        c = self.cfg
+        return c.max_minutes is not None and self.elapsed >= c.warmup_share * 60 * c.max_minutes
+
+    # --- do no harm: the held-out check of the recurrences ------------------------------------
+    @torch.no_grad()
+    def heldout_score(self) -> Optional[float]:
+        """Mean PSNR of the held-out renders against the captured held-out images, caustics and
+        all. A held-out view's caustics are its own, so no model predicts them: they add the same
+        error to every model, and the model closer to the caustic-free scene scores higher
+        (unlike the compensated score of ``evaluate``, this also sees low-frequency drift)."""
+        ids = self.data.test_ids[: self.cfg.eval_views] if self.cfg.eval_views else self.data.test_ids
+        if not ids:
+            return None
+        return float(sum(psnr(self.render_view(i).clamp(0, 1), self.data.view(i, 1)[1]) for i in ids) / len(ids))
+
+    def _snapshot(self, score: Optional[float]) -> None:
+        """Remember the plain model (before any C) and its held-out score."""
+        self.plain = {"score": score, "sh_degree": self.sh_degree,
+                      "params": {n: v.detach().clone() for n, v in self.params.items()}}
+        self.misses = 0
+
+    def _judge_round(self) -> bool:
+        """Score the model trained against the last estimate of C on the held-out views. If
+        ``recurrence_patience`` rounds in a row score more than ``harm_tol`` dB below the plain
+        model the recurrences started from, C is taking real scene content (on a survey without
+        caustics it only absorbs model error): go back to the plain model, drop C, and let it
+        train on as plain 3DGS until the held-out plateau or a limit. Returns whether the
+        recurrences are over."""
+        score = self.heldout_score()
+        self.rec_history[-1]["psnr_heldout"] = score
+        if score is None or self.plain is None or self.plain["score"] is None:
+            return False
+        if score >= self.plain["score"] - self.cfg.harm_tol:
+            self.misses = 0
+            return False
+        self.misses += 1
+        if self.misses < self.cfg.recurrence_patience:
+            return False
+        self._drop(f"caustic estimate hurt held-out views ({score:.2f} dB against {self.plain['score']:.2f} dB)")
+        return True
+
+    def _drop(self, why: str) -> None:
+        """End the recurrences without C: back to the plain model, which trains on as plain
+        3DGS (stage ``settle``) until the held-out plateau or a limit."""
+        self.restore_plain()
+        self.drop_reason = why
+        self.stage, self.next_due = "settle", None
+        self.best_psnr, self.since_best = -float("inf"), 0
+
+    def restore_plain(self) -> None:
+        """Put the plain model back and drop the caustic estimate (targets = captured images)."""
+        b = self.plain
+        self.params = {n: torch.nn.Parameter(v.clone()) for n, v in b["params"].items()}
+        self.optimizer = self._make_optimizer()
+        self.stats = density.GradientStats.zeros(self.params["means"].shape[0])
+        self.sh_degree = b["sh_degree"]
+        self.maps = {}
+        self.data.targets.clear()
+        self.dropped = True
+        self.misses = 0
+
+    def run(self, *args, **kwargs) -> str:
+        reason = super().run(*args, **kwargs)
+        if reason != "stopped" and self.stage == "recurrence" and self.plain and self.plain["score"] is not None:
+            # the same test when a limit ends the run: a caustic estimate that hurts held-out
+            # views is dropped, and the run ends with the plain model
+            score = self.heldout_score()
+            if score is not None and score < self.plain["score"] - self.cfg.harm_tol:
+                self._drop(f"caustic estimate hurt held-out views ({score:.2f} dB against "
+                           f"{self.plain['score']:.2f} dB)")
+        return reason
 
     def _start_recurrences(self) -> None:
         self.stage = "recurrence"
         self.next_due = self.step
         self.since_best = 0
+        self._snapshot(self.heldout_score())  # the plain model is the one not to fall below
 
     def _continue_after(self, reason: str) -> bool:
         if self.cfg.mode != "recgs" or reason != PLATEAU:
+            return False
+        if self.stage == "settle":
             return False
         if self.stage == "warmup":
             self._start_recurrences()
@@ -173,6 +274,9 @@ class CausticTrainer(Trainer):
             "rec_history": self.rec_history, "next_due": self.next_due, "stage": self.stage,
             "fields": None if self.fields is None else self.fields.state_dict(),
             "field_opt": None if self.fields is None else self.field_opt.state_dict(),
+            "plain": None if self.plain is None else {
+                **self.plain, "params": {n: v.cpu() for n, v in self.plain["params"].items()}},
+            "misses": self.misses, "dropped": self.dropped, "drop_reason": self.drop_reason,
         }
         return s
 
@@ -182,6 +286,10 @@ class CausticTrainer(Trainer):
         self.k, self.recurrence, self.stage = cs["k"], cs["recurrence"], cs["stage"]
         self.rec_history, self.next_due = list(cs["rec_history"]), cs["next_due"]
         self.maps = {int(i): m.to(self.device) for i, m in cs["maps"].items()}
+        b = cs.get("plain")
+        self.plain = None if b is None else {
+            **b, "params": {n: v.to(self.device) for n, v in b["params"].items()}}
+        self.misses, self.dropped, self.drop_reason = cs["misses"], cs["dropped"], cs["drop_reason"]
         for i, m in self.maps.items():
             self.data.targets[i] = self._decaustic(self.data.view(i, 1)[1], m)
         if self.cfg.mode == "filter2d":

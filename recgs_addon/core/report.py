@@ -33,7 +33,8 @@ def write_run_report(out: Path, metrics: dict, trainer=None, examples: int = 3) 
             ("held-out SSIM vs ground truth", _f(metrics.get("ssim_test_gt"), 4)),
             ("training images as captured, PSNR vs ground truth (dB)", _f(metrics.get("psnr_captured_gt"))),
             ("caustic-free training images, PSNR vs ground truth (dB)", _f(metrics.get("psnr_decaustic_gt"))),
-            ("caustic filter size k", metrics.get("caustic_k"))]
+            ("caustic filter size k", metrics.get("caustic_k")),
+            ("caustic estimate dropped", metrics.get("caustics_dropped"))]
     lines += [f"| {k} | {v} |" for k, v in rows if v not in (None, "-")]
     hist = metrics.get("history", [])
     if hist:
@@ -49,9 +50,10 @@ def write_run_report(out: Path, metrics: dict, trainer=None, examples: int = 3) 
                         title="Change of the caustic estimate", xlabel="recurrence", ylabel="relative change",
                         log_y=True)
         lines += ["", "## Recurrences", "", "![C change](report/c_change.png)", "",
-                  "| recurrence | iteration | seconds | change of C | mean abs C |", "|---|---|---|---|---|"]
+                  "| recurrence | iteration | seconds | change of C | mean abs C | held-out PSNR vs captured "
+                  "after its steps (dB) |", "|---|---|---|---|---|---|"]
         lines += [f"| {r['recurrence']} | {r['iteration']} | {r['elapsed']} | {r['c_change']:.4f} | "
-                  f"{r['mean_abs_c']:.4f} |" for r in rec]
+                  f"{r['mean_abs_c']:.4f} | {_f(r.get('psnr_heldout'))} |" for r in rec]
     if trainer is not None and hasattr(trainer, "decaustic_image"):
         data = trainer.data
         ids = data.train_ids[:: max(1, len(data.train_ids) // examples)][:examples]

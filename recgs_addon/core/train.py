@@ -86,6 +86,10 @@ class TrainConfig:
     caustic_k: int = 9                   # low-pass block size (odd); 0 = choose from the residual spectrum
     caustic_model: str = "additive"      # additive: I - C (paper) | multiplicative: I / exp(C_log)
     warmup: int = 1000                   # recgs: at most this many plain steps before the first recurrence
+    warmup_share: float = 0.5            # recgs: ... and at most this share of the time limit
+    recurrence_patience: int = 2         # recgs: rounds in a row that hurt held-out views before C is dropped
+    harm_tol: float = 0.15               # recgs: dB below the plain model's held-out PSNR that counts as hurting
+    stall_ratio: float = 0.6             # recgs: stop when the change of C shrinks by less than this per round
     recurrence_steps: int = 200          # recgs: optimisation steps per recurrence
     max_recurrences: int = 40
     recurrence_tol: float = 0.05         # stop when mean |dC| / mean |C| falls below this
