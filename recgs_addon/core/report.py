@@ -91,7 +91,7 @@ def write_benchmark_report(out: Path, surveys: Sequence[str], methods: Sequence[
     one table and one PNG per survey of held-out PSNR (vs ground truth) against time."""
     out = Path(out)
     lines = ["# Caustic-removal benchmark", "",
-             "Held-out PSNR against the clean ground truth (dB), time to the end of the run (s), "
+             "Held-out PSNR / SSIM against the clean ground truth (dB), time to the end of the run (s), "
              "PSNR of the caustic-free training images against ground truth (dB), and the RecGS "
              "gap recovered = (recgs - 3dgs) / (oracle - 3dgs).", ""]
     head = "| survey | " + " | ".join(methods) + " | gap recovered |"
@@ -104,7 +104,7 @@ def write_benchmark_report(out: Path, surveys: Sequence[str], methods: Sequence[
             if not r:
                 cells.append("-")
                 continue
-            cell = f"{_f(r.get('psnr_test_gt'))} dB, {_f(r.get('seconds'), 0)} s"
+            cell = f"{_f(r.get('psnr_test_gt'))} dB / {_f(r.get('ssim_test_gt'), 3)}, {_f(r.get('seconds'), 0)} s"
             if r.get("psnr_decaustic_gt") is not None:
                 cell += f", train {_f(r['psnr_decaustic_gt'])}"
             cells.append(cell)
@@ -117,16 +117,20 @@ def write_benchmark_report(out: Path, surveys: Sequence[str], methods: Sequence[
             pass
         lines.append(f"| {s} | " + " | ".join(cells) + f" | {gap} |")
     for s in surveys:
-        series = []
-        for m in methods:
-            r = results.get(s, {}).get(m)
-            if r and r.get("history"):
-                h = [x for x in r["history"] if x.get("psnr_gt") is not None]
-                series.append((m, [x["elapsed"] for x in h], [x["psnr_gt"] for x in h]))
-        if series:
-            plot.line_chart(out / f"psnr_time_{s}.png", series, title=f"{s}: held-out PSNR vs ground truth",
-                            xlabel="seconds", ylabel="dB")
-            lines += ["", f"## {s}", "", f"![{s}](psnr_time_{s}.png)"]
+        runs = [(m, results.get(s, {}).get(m)) for m in methods]
+        runs = [(m, [x for x in r["history"] if x.get("psnr_gt") is not None]) for m, r in runs if r and r.get("history")]
+        if not runs:
+            continue
+        for key, label in (("psnr_gt", "PSNR (dB)"), ("ssim_gt", "SSIM")):
+            plot.line_chart(out / f"{key.split('_')[0]}_time_{s}.png",
+                            [(m, [x["elapsed"] for x in h], [x.get(key) for x in h]) for m, h in runs],
+                            title=f"{s}: held-out {label.split()[0]} vs ground truth", xlabel="seconds", ylabel=label)
+        lines += ["", f"## {s}", "", f"![{s} PSNR](psnr_time_{s}.png) ![{s} SSIM](ssim_time_{s}.png)", "",
+                  "Held-out PSNR against ground truth at the last evaluation before 1, 2 and 5 minutes:", "",
+                  "| method | 1 min | 2 min | 5 min |", "|---|---|---|---|"]
+        for m, h in runs:
+            at = [max((x for x in h if x["elapsed"] <= t), key=lambda x: x["elapsed"], default=None) for t in (60, 120, 300)]
+            lines.append(f"| {m} | " + " | ".join(_f(x["psnr_gt"]) if x else "-" for x in at) + " |")
     if notes:
         lines += ["", "## Notes", ""] + notes
     path = out / "benchmark.md"
