@@ -201,7 +201,8 @@ def run_train(args) -> int:
         "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
         "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"), **outputs,
         "history": trainer.history, "recurrences": getattr(trainer, "rec_history", []),
-        "caustics_dropped": getattr(trainer, "drop_reason", None), "config": asdict(trainer.cfg),
+        "caustics_dropped": getattr(trainer, "drop_reason", None),
+        "psnr_heldout_plain": (getattr(trainer, "plain", None) or {}).get("score"), "config": asdict(trainer.cfg),
     }
     tmp = out / ".metrics.json.tmp"
     tmp.write_text(json.dumps(_finite_tree(metrics), indent=2, allow_nan=False, default=_json_default))

@@ -135,19 +135,27 @@ class CausticTrainer(Trainer):
         if self.recurrence and self._judge_round():
             return
         entry = self.recur()
-        prev = self.rec_history[-2]["c_change"] if len(self.rec_history) >= 2 else None
+        prev = self.rec_history[-2] if len(self.rec_history) >= 2 else None
         if entry["mean_abs_c"] < c.caustic_floor:
             self._drop(f"no caustics to remove (mean |C| {entry['mean_abs_c']:.4f})")
         elif entry["c_change"] < c.recurrence_tol:
             self.done_reason = f"caustic estimate converged (change {entry['c_change']:.3f})"
-        elif prev is not None and entry["c_change"] > max(c.stall_ratio * prev, 2 * c.recurrence_tol):
-            # a caustic field's estimate settles geometrically; one that keeps changing follows
-            # model error (it grows round after round on surveys without caustics)
-            self._drop(f"caustic estimate is not settling (change {prev:.3f} -> {entry['c_change']:.3f})")
+        elif prev is not None and self._stalled(entry):
+            # a caustic field's estimate settles geometrically; one that keeps changing and
+            # growing follows model error (surveys without caustics)
+            self._drop(f"caustic estimate is not settling (change {prev['c_change']:.3f} -> "
+                       f"{entry['c_change']:.3f}, mean |C| {prev['mean_abs_c']:.4f} -> {entry['mean_abs_c']:.4f})")
         elif self.recurrence >= c.max_recurrences:
             self.done_reason = "recurrence limit"
         if self.stage == "recurrence":
             self.next_due = None if self.done_reason else self.step + c.recurrence_steps
+
+    def _stalled(self, entry: dict) -> bool:
+        """The last round's C changed by more than ``stall_ratio`` of the round before (and more
+        than twice the tolerance) while ``mean |C|`` grew by more than ``stall_growth``."""
+        c, prev = self.cfg, self.rec_history[-2]
+        return (entry["c_change"] > max(c.stall_ratio * prev["c_change"], 2 * c.recurrence_tol)
+                and entry["mean_abs_c"] > (1 + c.stall_growth) * prev["mean_abs_c"])
 
     def _warmup_time_up(self) -> bool:
         """With a time limit, the warm-up gets at most ``warmup_share`` of it."""

@@ -89,7 +89,8 @@ class TrainConfig:
     warmup_share: float = 0.5            # recgs: ... and at most this share of the time limit
     recurrence_patience: int = 2         # recgs: rounds in a row that hurt held-out views before C is dropped
     harm_tol: float = 0.15               # recgs: dB below the plain model's held-out PSNR that counts as hurting
-    stall_ratio: float = 0.6             # recgs: stop when the change of C shrinks by less than this per round
+    stall_ratio: float = 0.6             # recgs: C is not settling when its change shrinks by less than
+    stall_growth: float = 0.15           # ... this per round while mean |C| grows by more than this
     recurrence_steps: int = 200          # recgs: optimisation steps per recurrence
     max_recurrences: int = 40
     recurrence_tol: float = 0.05         # stop when mean |dC| / mean |C| falls below this
