@@ -7,7 +7,9 @@ Surveys (generated once with tools/make_survey.py into OUT/surveys, reused after
 
 * ``sample``: the bundled data/sample (24 views, 256x192, refraction caustics, strength 0.45);
 * ``large``: 32 views at 320x240, another seed and the ``waves`` pattern;
-* ``weak``: 24 views, strength 0.15; ``none``: 24 views without caustics.
+* ``weak``: 24 views, strength 0.15; ``none``: 24 views without caustics;
+* ``dense`` (not in the default list): 48 views with 85 % / 80 % overlap, so each point is
+  seen by about three times as many photos as in the sample.
 
 Methods: ``3dgs``, ``filter2d``, ``joint``, ``oracle`` (plain 3DGS on the clean images),
 ``recgs`` (the paper's filter, k = 9, additive), and the two refinements ``recgs-autok``
@@ -34,6 +36,9 @@ SURVEYS = {
     "large": ["--views", "32", "--width", "320", "--height", "240", "--seed", "7", "--caustic-pattern", "waves"],
     "weak": ["--views", "24", "--seed", "3", "--caustic-strength", "0.15"],
     "none": ["--views", "24", "--seed", "4", "--caustic-strength", "0"],
+    # each seafloor point in ~3x as many photos (the caustics' mean over the photos that see a
+    # point is what no consistency-based method can tell from texture; see docs/caustics.md)
+    "dense": ["--views", "48", "--seed", "1", "--overlap", "0.85", "--sidelap", "0.8"],
 }
 METHODS = {
     "3dgs": ["--mode", "3dgs"],

@@ -88,7 +88,7 @@ class TrainConfig:
     warmup: int = 1000                   # recgs: at most this many plain steps before the first recurrence
     warmup_share: float = 0.5            # recgs: ... and at most this share of the time limit
     recurrence_patience: int = 2         # recgs: rounds in a row that hurt held-out views before C is dropped
-    harm_tol: float = 0.15               # recgs: dB below the plain model's held-out PSNR that counts as hurting
+    harm_tol: float = 0.5                # recgs: dB below the plain model's held-out PSNR that counts as hurting
     stall_ratio: float = 0.6             # recgs: C is not settling when its change shrinks by less than
     stall_growth: float = 0.15           # ... this per round while mean |C| grows by more than this
     recurrence_steps: int = 200          # recgs: optimisation steps per recurrence
