@@ -12,8 +12,8 @@ Surveys (generated once with tools/make_survey.py into OUT/surveys, reused after
   seen by about three times as many photos as in the sample.
 
 Methods: ``3dgs``, ``filter2d``, ``joint``, ``oracle`` (plain 3DGS on the clean images),
-``recgs`` (the paper's filter, k = 9, additive), and the two refinements ``recgs-autok``
-(k from the residual spectrum) and ``recgs-mult`` (multiplicative caustic model), run where
+``recgs`` (the defaults: k from the residual spectrum, additive), and the comparisons
+``recgs-k9`` (the paper's fixed 9x9 block) and ``recgs-mult`` (multiplicative caustic model), run where
 ``--refinements`` lists the survey. Each run gets the same wall-clock limit on its survey.
 Runs whose metrics.json exists are not repeated (delete the folder to redo one).
 """
@@ -46,7 +46,7 @@ METHODS = {
     "joint": ["--mode", "joint"],
     "oracle": ["--mode", "oracle"],
     "recgs": ["--mode", "recgs"],
-    "recgs-autok": ["--mode", "recgs", "--caustic-k", "0"],
+    "recgs-k9": ["--mode", "recgs", "--caustic-k", "9"],
     "recgs-mult": ["--mode", "recgs", "--caustic-model", "multiplicative"],
 }
 
@@ -85,7 +85,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench")
     p.add_argument("--surveys", default="sample,large,weak,none")
     p.add_argument("--methods", default="3dgs,filter2d,joint,oracle,recgs")
-    p.add_argument("--refinements", default="sample", help="surveys that also run recgs-autok, recgs-mult")
+    p.add_argument("--refinements", default="sample", help="surveys that also run recgs-k9, recgs-mult")
     p.add_argument("--minutes", type=float, default=1.75, help="wall-clock limit per run (small surveys)")
     p.add_argument("--large-minutes", type=float, default=3.0, help="wall-clock limit per run on 'large'")
     p.add_argument("--quick", action="store_true", help="downscale 2 and 0.5 min per run (smoke test)")
@@ -101,7 +101,7 @@ def main(argv=None) -> int:
         scene = survey_dir(args.out, s)
         methods = [m for m in args.methods.split(",") if m]
         if s in refine:
-            methods += ["recgs-autok", "recgs-mult"]
+            methods += ["recgs-k9", "recgs-mult"]
         if s == "none":  # oracle is 3dgs here; the question is only whether recgs stays out of the way
             methods = [m for m in methods if m in ("3dgs", "recgs")]
         minutes = 0.5 if args.quick else (args.large_minutes if s == "large" else args.minutes)

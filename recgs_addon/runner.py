@@ -80,7 +80,7 @@ def add_train_arguments(p) -> None:
     g.add_argument("--gt-images", default=None,
                    help="ground-truth images with the same names, for scoring (default: SCENE/clean if present)")
     g.add_argument("--caustic-k", type=int, default=None,
-                   help="low-pass block size, odd (default 9, as the paper); 0 = from the residual spectrum")
+                   help="low-pass block size, odd (the paper: 9); 0 = from the residual spectrum (default)")
     g.add_argument("--caustic-model", choices=["additive", "multiplicative"], default=None,
                    help="additive: fit I - C (paper); multiplicative: fit I / gain")
     g.add_argument("--warmup", type=int, default=None, help="recgs: most plain steps before the first recurrence")

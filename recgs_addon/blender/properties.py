@@ -56,10 +56,10 @@ class RecGSSettings(bpy.types.PropertyGroup):
                         description="Maximum number of Gaussians")
     downscale: IntProperty(name="Downscale", default=1, min=1, max=32,
                            description="Train at the photo size divided by this")
-    caustic_k: IntProperty(name="Caustic Filter Size", default=9, min=0, max=63, step=2,
-                           description="Side of the kept low-frequency block of the caustic filter "
-                                       "(odd; 9 keeps -4..+4 cycles per image; 0 = chosen from the "
-                                       "residual spectrum)")
+    caustic_k: IntProperty(name="Caustic Filter Size", default=0, min=0, max=63, step=2,
+                           description="Side of the kept low-frequency block of the caustic filter: "
+                                       "0 = chosen from the residual spectrum (default); odd sizes "
+                                       "fix it (9 keeps -4..+4 cycles per image, as the paper)")
     # -- advanced ----------------------------------------------------------------------------
     preset: EnumProperty(name="Preset", default="default",
                          items=[("default", "Default", "Lean schedule: grows only what the scene needs"),
