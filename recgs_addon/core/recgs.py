@@ -13,13 +13,14 @@
   since caustics modulate the light; ``cfg.caustic_k = 0`` picks the block size from the
   residual spectrum at the first recurrence (``caustics.choose_k``).
 
-  Do no harm: C is *dropped* (the plain model the recurrences started from comes back and
-  trains on as plain 3DGS, stage ``settle``) when it is negligible (``mean |C| <
-  cfg.caustic_floor``), when it does not settle (its change shrinks by less than
-  ``cfg.stall_ratio`` per round: an estimate of a caustic field converges geometrically, one
-  that follows model error keeps growing, which is what happens without caustics), or when
-  ``cfg.recurrence_patience`` rounds in a row score more than ``cfg.harm_tol`` dB below the
-  plain model on the held-out views against the captured photos (``heldout_score``).
+  Do no harm: C is *dropped* and the model trains on as plain 3DGS on the captured images
+  (stage ``settle``) when C is negligible (``mean |C| < cfg.caustic_floor``) or does not
+  settle (its change shrinks by less than ``cfg.stall_ratio`` per round while ``mean |C|``
+  grows by more than ``cfg.stall_growth``: an estimate of a caustic field converges, one that
+  follows model error keeps growing, which is what happens without caustics); these go on
+  from the current model. When ``cfg.recurrence_patience`` rounds in a row score more than
+  ``cfg.harm_tol`` dB below the plain model on the held-out views against the captured photos
+  (``heldout_score``), the plain model the recurrences started from comes back first.
 * ``filter2d``: fit ``I - lowpass(I - mean I)`` per image from the start (no 3D reasoning).
 * ``joint``: learn a per-image ``k x k`` Fourier field with the Gaussians, fitting
   ``render + field_i`` to ``I`` (the alternative the paper reports as failing: the fields and
@@ -137,14 +138,15 @@ class CausticTrainer(Trainer):
         entry = self.recur()
         prev = self.rec_history[-2] if len(self.rec_history) >= 2 else None
         if entry["mean_abs_c"] < c.caustic_floor:
-            self._drop(f"no caustics to remove (mean |C| {entry['mean_abs_c']:.4f})")
+            self._drop(f"no caustics to remove (mean |C| {entry['mean_abs_c']:.4f})", restore=False)
         elif entry["c_change"] < c.recurrence_tol:
             self.done_reason = f"caustic estimate converged (change {entry['c_change']:.3f})"
         elif prev is not None and self._stalled(entry):
             # a caustic field's estimate settles geometrically; one that keeps changing and
             # growing follows model error (surveys without caustics)
             self._drop(f"caustic estimate is not settling (change {prev['c_change']:.3f} -> "
-                       f"{entry['c_change']:.3f}, mean |C| {prev['mean_abs_c']:.4f} -> {entry['mean_abs_c']:.4f})")
+                       f"{entry['c_change']:.3f}, mean |C| {prev['mean_abs_c']:.4f} -> {entry['mean_abs_c']:.4f})",
+                       restore=False)
         elif self.recurrence >= c.max_recurrences:
             self.done_reason = "recurrence limit"
         if self.stage == "recurrence":
@@ -200,10 +202,18 @@ class CausticTrainer(Trainer):
         self._drop(f"caustic estimate hurt held-out views ({score:.2f} dB against {self.plain['score']:.2f} dB)")
         return True
 
-    def _drop(self, why: str) -> None:
-        """End the recurrences without C: back to the plain model, which trains on as plain
-        3DGS (stage ``settle``) until the held-out plateau or a limit."""
-        self.restore_plain()
+    def _drop(self, why: str, restore: bool = True) -> None:
+        """End the recurrences without C: the model trains on as plain 3DGS on the captured
+        images (stage ``settle``) until the held-out plateau or a limit. ``restore``: start from
+        the plain model the recurrences started from (when C hurt held-out views); otherwise go
+        on from the current model and its Adam state, so no steps are thrown away."""
+        if restore:
+            self.restore_plain()
+        else:
+            self.maps = {}
+            self.data.targets.clear()
+            self.dropped = True
+            self.misses = 0
         self.drop_reason = why
         self.stage, self.next_due = "settle", None
         self.best_psnr, self.since_best = -float("inf"), 0
