@@ -148,7 +148,7 @@ def clean_scene(tmp_path_factory):
 
 def rec_cfg(**kw):
     base = dict(iterations=2000, eval_every=50, log_every=50, holdout_every=5, compiled=False, mode="recgs",
-                densify_from=50, densify_every=50, densify_until=300, pyramid=(), warmup=400,
+                densify_from=50, densify_every=50, densify_until=400, pyramid=(), warmup=400,
                 recurrence_steps=60, max_recurrences=15, caustic_k=5)
     base.update(kw)
     return preset("default", **base)
@@ -211,16 +211,16 @@ def test_a_caustic_estimate_that_hurts_held_out_views_is_dropped(caustic_scene):
 
 
 def test_resume_in_the_middle_of_a_recurrence_continues_it(caustic_scene):
-    cfg = rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40)
+    cfg = rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40, recurrence_tol=0.0)
     a = make_trainer(caustic_scene, cfg, gt_images="clean")
     assert a.run(should_stop=lambda: a.step >= 430) == "stopped"  # inside the first recurrence (400..460)
     assert a.stage == "recurrence" and a.recurrence == 1 and a.next_due == 460
     state = a.state_dict()
-    b = make_trainer(caustic_scene, rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40),
+    b = make_trainer(caustic_scene, rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40, recurrence_tol=0.0),
                      gt_images="clean")
     b.load_state_dict(state)
     b.run()
-    ref = make_trainer(caustic_scene, rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40),
+    ref = make_trainer(caustic_scene, rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40, recurrence_tol=0.0),
                        gt_images="clean")
     ref.run()
     assert b.recurrence == ref.recurrence == 3

@@ -2,8 +2,9 @@
 
 ``CausticTrainer`` is the :class:`~.train.Trainer` with caustic-free targets, by ``cfg.mode``:
 
-* ``recgs``: train plain 3DGS on the captured images I (warm-up: until held-out PSNR
-  plateaus, ``cfg.warmup`` steps, or ``cfg.warmup_share`` of the time limit), then recur:
+* ``recgs``: train plain 3DGS on the captured images I (warm-up: until density control has
+  stopped growing the model, held-out PSNR plateaus, ``cfg.warmup`` steps, or
+  ``cfg.warmup_share`` of the time limit, whichever comes first), then recur:
   render every training view, low-pass the residual ``R = I - render`` (core/caustics.py)
   into the caustic estimate ``C``, train ``cfg.recurrence_steps`` steps against ``I - C``, and
   repeat until ``C`` stops changing (``mean |C_new - C_old| / mean |C_new| <
@@ -129,7 +130,7 @@ class CausticTrainer(Trainer):
 
     def _schedule(self) -> None:
         c = self.cfg
-        if self.stage == "warmup" and (self.step >= c.warmup or self._warmup_time_up()):
+        if self.stage == "warmup" and (self.step >= c.warmup or self._warmup_time_up() or self._growth_over()):
             self._start_recurrences()
         if self.stage != "recurrence" or self.next_due is None or self.step < self.next_due:
             return
@@ -158,6 +159,13 @@ class CausticTrainer(Trainer):
         c, prev = self.cfg, self.rec_history[-2]
         return (entry["c_change"] > max(c.stall_ratio * prev["c_change"], 2 * c.recurrence_tol)
                 and entry["mean_abs_c"] > (1 + c.stall_growth) * prev["mean_abs_c"])
+
+    def _growth_over(self) -> bool:
+        """Density control has stopped adding Gaussians (frozen, at its budget, or past its
+        last step): from here the model's low frequencies change little, so C can hold
+        caustics rather than the model's own growing pains."""
+        n = int(self.params["means"].shape[0])
+        return self.step > self.cfg.densify_from and (not self._densifying() or (self.budget is not None and n >= self.budget))
 
     def _warmup_time_up(self) -> bool:
         """With a time limit, the warm-up gets at most ``warmup_share`` of it."""

@@ -85,7 +85,7 @@ class TrainConfig:
     mode: str = "3dgs"
     caustic_k: int = 0                   # low-pass block size (odd; the paper: 9); 0 = from the residual spectrum
     caustic_model: str = "additive"      # additive: I - C (paper) | multiplicative: I / exp(C_log)
-    warmup: int = 1000                   # recgs: at most this many plain steps before the first recurrence
+    warmup: int = 3000                   # recgs: at most this many plain steps before the first recurrence
     warmup_share: float = 0.5            # recgs: ... and at most this share of the time limit
     recurrence_patience: int = 2         # recgs: rounds in a row that hurt held-out views before C is dropped
     harm_tol: float = 0.5                # recgs: dB below the plain model's held-out PSNR that counts as hurting
@@ -94,7 +94,7 @@ class TrainConfig:
     recurrence_steps: int = 200          # recgs: optimisation steps per recurrence
     max_recurrences: int = 40
     recurrence_tol: float = 0.1          # stop when mean |dC| / mean |C| falls below this
-    caustic_floor: float = 0.004         # ... or when mean |C| falls below this (no caustics to remove)
+    caustic_floor: float = 0.01          # recgs: C is dropped when mean |C| is below this (1 % of full scale)
 
     def validate(self) -> None:
         """Refuse settings no run can use (called before any data is read)."""
