@@ -210,6 +210,18 @@ def test_a_caustic_estimate_that_hurts_held_out_views_is_dropped(caustic_scene):
     assert tr.step == 700 and tr.recurrence == 3  # trained on as plain 3DGS
 
 
+def test_checkpoint_from_before_the_do_no_harm_tests_loads(caustic_scene):
+    cfg = rec_cfg(iterations=460, warmup=400, recurrence_steps=60)
+    a = make_trainer(caustic_scene, cfg, gt_images="clean")
+    a.run()
+    state = a.state_dict()
+    for key in ("plain", "misses", "drop_reason"):
+        del state["caustic"][key]
+    b = make_trainer(caustic_scene, cfg, gt_images="clean")
+    b.load_state_dict(state)
+    assert b.plain is None and b.misses == 0 and not b.dropped and b.recurrence == a.recurrence
+
+
 def test_resume_in_the_middle_of_a_recurrence_continues_it(caustic_scene):
     cfg = rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40, recurrence_tol=0.0)
     a = make_trainer(caustic_scene, cfg, gt_images="clean")

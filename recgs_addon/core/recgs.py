@@ -62,8 +62,7 @@ class CausticTrainer(Trainer):
         #: the captured images; ``params``, ``sh_degree``), and rounds in a row that scored worse
         self.plain: Optional[dict] = None
         self.misses = 0
-        self.dropped = False  # C was dropped (see _drop), and why
-        self.drop_reason: Optional[str] = None
+        self.drop_reason: Optional[str] = None  # why C was dropped (see _drop), if it was
         self.fields = None
         if cfg.mode == "filter2d":
             self._set_filter2d_targets()
@@ -179,10 +178,19 @@ class CausticTrainer(Trainer):
         all. A held-out view's caustics are its own, so no model predicts them: they add the same
         error to every model, and the model closer to the caustic-free scene scores higher
         (unlike the compensated score of ``evaluate``, this also sees low-frequency drift)."""
-        ids = self.data.test_ids[: self.cfg.eval_views] if self.cfg.eval_views else self.data.test_ids
+        ids = self.heldout_ids()
         if not ids:
             return None
         return float(sum(psnr(self.render_view(i).clamp(0, 1), self.data.view(i, 1)[1]) for i in ids) / len(ids))
+
+    def _harm(self, score: Optional[float]) -> Optional[str]:
+        """Why ``score`` counts as hurting held-out views (more than ``harm_tol`` dB below the
+        plain model), or None."""
+        if score is None or self.plain is None or self.plain["score"] is None:
+            return None
+        if score >= self.plain["score"] - self.cfg.harm_tol:
+            return None
+        return f"caustic estimate hurt held-out views ({score:.2f} dB against {self.plain['score']:.2f} dB)"
 
     def _snapshot(self, score: Optional[float]) -> None:
         """Remember the plain model (before any C) and its held-out score."""
@@ -199,15 +207,11 @@ class CausticTrainer(Trainer):
         recurrences are over."""
         score = self.heldout_score()
         self.rec_history[-1]["psnr_heldout"] = score
-        if score is None or self.plain is None or self.plain["score"] is None:
+        harm = self._harm(score)
+        self.misses = self.misses + 1 if harm else 0
+        if not harm or self.misses < self.cfg.recurrence_patience:
             return False
-        if score >= self.plain["score"] - self.cfg.harm_tol:
-            self.misses = 0
-            return False
-        self.misses += 1
-        if self.misses < self.cfg.recurrence_patience:
-            return False
-        self._drop(f"caustic estimate hurt held-out views ({score:.2f} dB against {self.plain['score']:.2f} dB)")
+        self._drop(harm)
         return True
 
     def _drop(self, why: str, restore: bool = True) -> None:
@@ -216,37 +220,30 @@ class CausticTrainer(Trainer):
         the plain model the recurrences started from (when C hurt held-out views); otherwise go
         on from the current model and its Adam state, so no steps are thrown away."""
         if restore:
-            self.restore_plain()
-        else:
-            self.maps = {}
-            self.data.targets.clear()
-            self.dropped = True
-            self.misses = 0
+            b = self.plain
+            self.params = {n: torch.nn.Parameter(v.clone()) for n, v in b["params"].items()}
+            self.optimizer = self._make_optimizer()
+            self.stats = density.GradientStats.zeros(self.params["means"].shape[0])
+            self.sh_degree = b["sh_degree"]
+        self.maps = {}
+        self.data.targets.clear()  # targets = the captured images
+        self.misses = 0
         self.drop_reason = why
         self.stage, self.next_due = "settle", None
         self.best_psnr, self.since_best = -float("inf"), 0
 
-    def restore_plain(self) -> None:
-        """Put the plain model back and drop the caustic estimate (targets = captured images)."""
-        b = self.plain
-        self.params = {n: torch.nn.Parameter(v.clone()) for n, v in b["params"].items()}
-        self.optimizer = self._make_optimizer()
-        self.stats = density.GradientStats.zeros(self.params["means"].shape[0])
-        self.sh_degree = b["sh_degree"]
-        self.maps = {}
-        self.data.targets.clear()
-        self.dropped = True
-        self.misses = 0
+    @property
+    def dropped(self) -> bool:
+        return self.drop_reason is not None
 
     def run(self, *args, **kwargs) -> str:
         reason = super().run(*args, **kwargs)
-        if reason != "stopped" and self.stage == "recurrence" and self.plain and self.plain["score"] is not None:
+        if reason != "stopped" and self.stage == "recurrence":
             # the same test when a limit ends the run: a caustic estimate that hurts held-out
             # views is dropped, and the run ends with the plain model
-            score = self.heldout_score()
-            if score is not None and score < self.plain["score"] - self.cfg.harm_tol:
-                self._drop(f"caustic estimate hurt held-out views ({score:.2f} dB against "
-                           f"{self.plain['score']:.2f} dB)")
+            harm = self._harm(self.heldout_score())
+            if harm:
+                self._drop(harm)
         return reason
 
     def _start_recurrences(self) -> None:
@@ -302,7 +299,7 @@ class CausticTrainer(Trainer):
             "field_opt": None if self.fields is None else self.field_opt.state_dict(),
             "plain": None if self.plain is None else {
                 **self.plain, "params": {n: v.cpu() for n, v in self.plain["params"].items()}},
-            "misses": self.misses, "dropped": self.dropped, "drop_reason": self.drop_reason,
+            "misses": self.misses, "drop_reason": self.drop_reason,
         }
         return s
 
@@ -315,7 +312,8 @@ class CausticTrainer(Trainer):
         b = cs.get("plain")
         self.plain = None if b is None else {
             **b, "params": {n: v.to(self.device) for n, v in b["params"].items()}}
-        self.misses, self.dropped, self.drop_reason = cs["misses"], cs["dropped"], cs["drop_reason"]
+        # checkpoints written before the do-no-harm tests have none of these
+        self.misses, self.drop_reason = cs.get("misses", 0), cs.get("drop_reason")
         for i, m in self.maps.items():
             self.data.targets[i] = self._decaustic(self.data.view(i, 1)[1], m)
         if self.cfg.mode == "filter2d":

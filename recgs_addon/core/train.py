@@ -411,14 +411,17 @@ class Trainer:
         image (caustic modes compensate its caustics, see core/recgs.py)."""
         return self.data.view(index, 1)[1]
 
+    def heldout_ids(self, ids: Optional[list[int]] = None) -> list[int]:
+        """The held-out views a score is taken on (``ids``, default all, cut to ``eval_views``)."""
+        ids = self.data.test_ids if ids is None else ids
+        return ids[: self.cfg.eval_views] if self.cfg.eval_views else ids
+
     @torch.no_grad()
     def evaluate(self, ids: Optional[list[int]] = None) -> dict:
         """Mean PSNR (dB) and SSIM over held-out views at the training resolution: ``psnr`` /
         ``ssim`` against the held-out images (what the run decides on), and ``psnr_gt`` /
         ``ssim_gt`` against the ground truth where the survey has one."""
-        ids = self.data.test_ids if ids is None else ids
-        if self.cfg.eval_views:
-            ids = ids[: self.cfg.eval_views]
+        ids = self.heldout_ids(ids)
         if not ids:
             return {}
         ps, ss, pg, sg = [], [], [], []
