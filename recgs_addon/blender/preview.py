@@ -245,12 +245,16 @@ def _build_node_group(ng) -> None:
     ng["recgs_preview_version"] = VERSION
 
 
-def _build_splat_material(mat) -> None:
+def _emptied(mat) -> "_Builder":
+    """A builder over ``mat``'s node tree, emptied for a rebuild."""
     if mat.node_tree is None:  # Blender < 5 (use_nodes is deprecated in 5.0, always on)
         mat.use_nodes = True
-    nt = mat.node_tree
-    nt.nodes.clear()
-    b = _Builder(nt)
+    mat.node_tree.nodes.clear()
+    return _Builder(mat.node_tree)
+
+
+def _build_splat_material(mat) -> None:
+    b = _emptied(mat)
     colour = b.node("ShaderNodeAttribute", attribute_type="INSTANCER", attribute_name="recgs_color")
     opacity = b.node("ShaderNodeAttribute", attribute_type="INSTANCER", attribute_name="recgs_alpha")
     p = b.node("ShaderNodeTexCoord").outputs["Object"]  # instance space: the Gaussian is N(0, I)
@@ -276,11 +280,7 @@ def _build_splat_material(mat) -> None:
 
 
 def _build_point_material(mat) -> None:
-    if mat.node_tree is None:  # Blender < 5 (use_nodes is deprecated in 5.0, always on)
-        mat.use_nodes = True
-    nt = mat.node_tree
-    nt.nodes.clear()
-    b = _Builder(nt)
+    b = _emptied(mat)
     colour = b.node("ShaderNodeAttribute", attribute_type="GEOMETRY", attribute_name="recgs_color")
     emit = b.node("ShaderNodeEmission", {"Strength": 1.0})
     b.link(colour.outputs["Color"], emit.inputs["Color"])
