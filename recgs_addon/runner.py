@@ -83,6 +83,9 @@ def add_train_arguments(p) -> None:
                    help="low-pass block size, odd (the paper: 9); 0 = from the residual spectrum (default)")
     g.add_argument("--caustic-model", choices=["additive", "multiplicative"], default=None,
                    help="additive: fit I - C (paper); multiplicative: fit I / gain")
+    g.add_argument("--caustic-dc", choices=["zero", "keep"], default=None,
+                   help="recgs: C's mean per view: zero (default; caustics move light, they add none) "
+                        "or keep (the paper)")
     g.add_argument("--warmup", type=int, default=None, help="recgs: most plain steps before the first recurrence")
     g.add_argument("--recurrence-steps", type=int, default=None, help="recgs: steps per recurrence")
     g.add_argument("--max-recurrences", type=int, default=None)
@@ -125,8 +128,7 @@ def run_train(args) -> int:
         state = None
         if args.resume:
             state = load_checkpoint(ckpt_path)
-            cfg = TrainConfig(**{**state["config"], "pyramid": tuple(tuple(x) for x in state["config"]["pyramid"]),
-                                 "background": tuple(state["config"]["background"])})
+            cfg = TrainConfig.from_dict(state["config"])
             if args.max_minutes is not None:
                 cfg.max_minutes = args.max_minutes
             if args.iterations is not None:
@@ -136,7 +138,8 @@ def run_train(args) -> int:
                          downscale=args.downscale, sh_degree=args.sh_degree, seed=args.seed,
                          device=args.device, holdout_every=args.holdout_every,
                          budget=_parse_budget(args.budget), compiled=False if args.eager else None,
-                         mode=args.mode, caustic_k=args.caustic_k, caustic_model=args.caustic_model,
+                         mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
+                         caustic_k=args.caustic_k, caustic_model=args.caustic_model,
                          warmup=args.warmup, recurrence_steps=args.recurrence_steps,
                          max_recurrences=args.max_recurrences, recurrence_tol=args.recurrence_tol)
         init = read_gaussian_ply(args.init_ply) if args.init_ply and not args.resume else None

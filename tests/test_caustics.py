@@ -3,6 +3,7 @@ import json
 import shutil
 import subprocess
 import sys
+from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from recgs_addon.core import caustics
 from recgs_addon.core.errors import RecGSError
 from recgs_addon.core.images import read_image, write_image
 from recgs_addon.core.losses import psnr
-from recgs_addon.core.train import make_trainer, preset
+from recgs_addon.core.train import TrainConfig, make_trainer, preset
 
 
 def wave(h, w, fy, fx, phase=0.0, c=3):
@@ -173,6 +174,39 @@ def test_recurrence_converges_stops_and_removes_the_caustics(caustic_scene):
         assert corr > 0.85
 
 
+def test_caustic_estimate_without_dc_has_zero_mean_and_still_converges(caustic_scene):
+    """``caustic_dc=False``: every C has zero mean per channel (caustics move light, they add
+    none), and the recurrence still converges and cleans the views."""
+    tr = make_trainer(caustic_scene, rec_cfg(caustic_dc=False), gt_images="clean")
+    reason = tr.run()
+    assert "converged" in reason, reason
+    ids = tr.data.train_ids
+    for i in ids:
+        assert tr.maps[i].mean(dim=(0, 1)).abs().max() < 1e-6
+    captured = np.mean([psnr(tr.data.view(i)[1], tr.data.gt_view(i)) for i in ids])
+    cleaned = np.mean([psnr(tr.decaustic_image(i).clamp(0, 1), tr.data.gt_view(i)) for i in ids])
+    assert cleaned > captured + 4.0, (captured, cleaned)
+
+
+def test_dc_free_estimate_ignores_a_brightness_error_of_the_model(caustic_scene):
+    """A model that renders every view 5 % too dark: with the DC term C takes that error in
+    as caustic light (and the targets keep it); without, only the error's non-constant low
+    frequencies remain in C."""
+    tr = make_trainer(caustic_scene, rec_cfg(caustic_dc=False), gt_images="clean")
+    i = tr.data.train_ids[0]
+    clean = tr.data.gt_view(i).double()
+    field = _caustic_field(36, 48, i).double()
+    free = tr._estimate(clean + field, 0.95 * clean, 9)
+    tr.cfg.caustic_dc = True
+    kept = tr._estimate(clean + field, 0.95 * clean, 9)
+    bias = caustics.lowpass(0.05 * clean, 9)
+    assert torch.allclose(kept, field + bias, atol=1e-6)
+    assert torch.allclose(free, field + bias - bias.mean(dim=(0, 1)), atol=1e-6)
+    err_free = float((free - field).abs().mean())
+    err_keep = float((kept - field).abs().mean())
+    assert err_free < err_keep, (err_free, err_keep)
+
+
 def test_no_caustics_stops_within_three_rounds(clean_scene):
     tr = make_trainer(clean_scene, rec_cfg(), gt_images="clean")
     reason = tr.run()
@@ -220,6 +254,16 @@ def test_checkpoint_from_before_the_do_no_harm_tests_loads(caustic_scene):
     b = make_trainer(caustic_scene, cfg, gt_images="clean")
     b.load_state_dict(state)
     assert b.plain is None and b.misses == 0 and not b.dropped and b.recurrence == a.recurrence
+
+
+def test_config_of_an_older_checkpoint_keeps_the_dc_term():
+    """A checkpoint saved before ``caustic_dc`` existed resumes with the DC term it was made
+    with; a new one round-trips (through JSON, as the job's metrics hold it) unchanged."""
+    cfg = rec_cfg()
+    old = asdict(cfg)
+    del old["caustic_dc"]
+    assert cfg.caustic_dc is False and TrainConfig.from_dict(old).caustic_dc is True
+    assert TrainConfig.from_dict(json.loads(json.dumps(asdict(cfg)))) == cfg
 
 
 def test_resume_in_the_middle_of_a_recurrence_continues_it(caustic_scene):

@@ -6,7 +6,9 @@
   stopped growing the model, held-out PSNR plateaus, ``cfg.warmup`` steps, or
   ``cfg.warmup_share`` of the time limit, whichever comes first), then recur:
   render every training view, low-pass the residual ``R = I - render`` (core/caustics.py)
-  into the caustic estimate ``C``, train ``cfg.recurrence_steps`` steps against ``I - C``, and
+  into the caustic estimate ``C`` (less its mean per view and channel unless
+  ``cfg.caustic_dc``: caustics move light without adding any, and a DC term would carry the
+  warm-up model's brightness error, see docs/caustics.md), train ``cfg.recurrence_steps`` steps against ``I - C``, and
   repeat until ``C`` stops changing (``mean |C_new - C_old| / mean |C_new| <
   cfg.recurrence_tol``), or at ``cfg.max_recurrences`` or the time/iteration limit.
   ``cfg.caustic_model = "multiplicative"`` estimates a log-gain
@@ -88,7 +90,10 @@ class CausticTrainer(Trainer):
             resid = torch.log(image + LOG_EPS) - torch.log(rgb.clamp_min(0) + LOG_EPS)
         else:
             resid = image - rgb
-        return caustics.lowpass(resid, k)
+        est = caustics.lowpass(resid, k)
+        if not self.cfg.caustic_dc:
+            est = est - est.mean(dim=(0, 1), keepdim=True)
+        return est
 
     def caustic_map(self, index: int) -> torch.Tensor:
         """Additive caustic estimate ``C = I - (caustic-free I)`` of a training view (full res)."""

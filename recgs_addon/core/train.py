@@ -84,6 +84,7 @@ class TrainConfig:
     # caustic removal (core/recgs.py): mode 3dgs | oracle (plain) | recgs | filter2d | joint
     mode: str = "3dgs"
     caustic_k: int = 0                   # low-pass block size (odd; the paper: 9); 0 = from the residual spectrum
+    caustic_dc: bool = False             # recgs: keep C's DC term (the paper); False: C has zero mean per view
     caustic_model: str = "additive"      # additive: I - C (paper) | multiplicative: I / exp(C_log)
     warmup: int = 3000                   # recgs: at most this many plain steps before the first recurrence
     warmup_share: float = 0.5            # recgs: ... and at most this share of the time limit
@@ -95,6 +96,16 @@ class TrainConfig:
     max_recurrences: int = 40
     recurrence_tol: float = 0.1          # stop when mean |dC| / mean |C| falls below this
     caustic_floor: float = 0.01          # recgs: C is dropped when mean |C| is below this (1 % of full scale)
+
+    #: Settings added since a release, with the value that reproduces runs saved before them.
+    _BEFORE = {"caustic_dc": True}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        """The config saved in a checkpoint (``asdict`` form); a setting newer than the
+        checkpoint takes the value the run was made with, so a resume continues it unchanged."""
+        d = {**cls._BEFORE, **d}
+        return cls(**{**d, "pyramid": tuple(tuple(x) for x in d["pyramid"]), "background": tuple(d["background"])})
 
     def validate(self) -> None:
         """Refuse settings no run can use (called before any data is read)."""
