@@ -163,6 +163,9 @@ def test_recurrence_converges_stops_and_removes_the_caustics(caustic_scene):
     changes = [r["c_change"] for r in tr.rec_history]
     assert changes[0] == 1.0 and changes[-1] < tr.cfg.recurrence_tol
     ids = tr.data.train_ids
+    assert tr.cfg.caustic_dc is False  # the default: caustics move light, they add none
+    for i in ids:
+        assert tr.maps[i].mean(dim=(0, 1)).abs().max() < 1e-6
     captured = np.mean([psnr(tr.data.view(i)[1], tr.data.gt_view(i)) for i in ids])
     cleaned = np.mean([psnr(tr.decaustic_image(i).clamp(0, 1), tr.data.gt_view(i)) for i in ids])
     assert cleaned > captured + 4.0, (captured, cleaned)
@@ -174,25 +177,11 @@ def test_recurrence_converges_stops_and_removes_the_caustics(caustic_scene):
         assert corr > 0.85
 
 
-def test_caustic_estimate_without_dc_has_zero_mean_and_still_converges(caustic_scene):
-    """``caustic_dc=False``: every C has zero mean per channel (caustics move light, they add
-    none), and the recurrence still converges and cleans the views."""
-    tr = make_trainer(caustic_scene, rec_cfg(caustic_dc=False), gt_images="clean")
-    reason = tr.run()
-    assert "converged" in reason, reason
-    ids = tr.data.train_ids
-    for i in ids:
-        assert tr.maps[i].mean(dim=(0, 1)).abs().max() < 1e-6
-    captured = np.mean([psnr(tr.data.view(i)[1], tr.data.gt_view(i)) for i in ids])
-    cleaned = np.mean([psnr(tr.decaustic_image(i).clamp(0, 1), tr.data.gt_view(i)) for i in ids])
-    assert cleaned > captured + 4.0, (captured, cleaned)
-
-
 def test_dc_free_estimate_ignores_a_brightness_error_of_the_model(caustic_scene):
     """A model that renders every view 5 % too dark: with the DC term C takes that error in
     as caustic light (and the targets keep it); without, only the error's non-constant low
     frequencies remain in C."""
-    tr = make_trainer(caustic_scene, rec_cfg(caustic_dc=False), gt_images="clean")
+    tr = make_trainer(caustic_scene, rec_cfg(), gt_images="clean")
     i = tr.data.train_ids[0]
     clean = tr.data.gt_view(i).double()
     field = _caustic_field(36, 48, i).double()

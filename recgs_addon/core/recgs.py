@@ -8,8 +8,8 @@
   render every training view, low-pass the residual ``R = I - render`` (core/caustics.py)
   into the caustic estimate ``C`` (less its mean per view and channel unless
   ``cfg.caustic_dc``: caustics move light without adding any, and a DC term would carry the
-  warm-up model's brightness error, see docs/caustics.md), train ``cfg.recurrence_steps`` steps against ``I - C``, and
-  repeat until ``C`` stops changing (``mean |C_new - C_old| / mean |C_new| <
+  warm-up model's brightness error, see docs/caustics.md), train ``cfg.recurrence_steps``
+  steps against ``I - C``, and repeat until ``C`` stops changing (``mean |C_new - C_old| / mean |C_new| <
   cfg.recurrence_tol``), or at ``cfg.max_recurrences`` or the time/iteration limit.
   ``cfg.caustic_model = "multiplicative"`` estimates a log-gain
   ``L = lowpass(log(I + e) - log(render + e))`` and fits ``(I + e) exp(-L) - e`` instead,
