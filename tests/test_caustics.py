@@ -347,3 +347,29 @@ def test_benchmark_report_table_plots_and_gap(tmp_path):
     assert "| recgs | 16.50 | 19.00 | 20.00 |" in text  # last evaluation before 1, 2 and 5 minutes
     for name in ("psnr_time_sample.png", "ssim_time_sample.png"):
         assert (tmp_path / name).stat().st_size > 1000
+
+
+def test_bound_tool_refits_colours_and_recovers_the_caustics(tmp_path):
+    """benchmarks/bound_caustics.py: with the true geometry, colours refit to the clean photos
+    stay exact, colours refit to the captured photos take in the caustics' average, and the
+    RecGS rounds on the colours give training images much closer to ground truth than the photos."""
+    from benchmarks.bound_caustics import bound
+    from recgs_addon.core.ply import write_gaussian_ply
+
+    root = tmp_path / "scene"
+    gt = write_rendered_scene(root, n_views=10, width=48, height=36, n_gauss=300)
+    shutil.copytree(root / "images", root / "clean")
+    captured = []
+    for i, p in enumerate(sorted((root / "clean").iterdir())):
+        img = torch.from_numpy(read_image(p))
+        write_image(root / "images" / p.name, (img + _caustic_field(36, 48, i)).clamp(0, 1).numpy())
+        captured.append(psnr(torch.from_numpy(read_image(root / "images" / p.name)), img))
+    write_gaussian_ply(tmp_path / "gt.ply", gt)
+    kw = dict(steps=150, k=5, holdout_every=5, compiled=False, log=lambda m: None)
+
+    exact = bound(root, tmp_path / "gt.ply", targets="clean", rounds=0, **kw)
+    assert exact[0]["heldout"] > 40 and exact[1]["heldout"] > 35, exact
+
+    rec = bound(root, tmp_path / "gt.ply", targets="captured", rounds=2, **kw)
+    assert rec[1]["heldout"] < rec[0]["heldout"] - 5, rec  # the photos' caustics, averaged, got in
+    assert rec[-1]["train"] > np.mean(captured) + 5, (rec, np.mean(captured))
