@@ -58,9 +58,10 @@ def bound(scene_dir: Path, model: Path, *, targets: str = "captured", loss: str 
     photo = truth if targets == "clean" else {
         i: torch.from_numpy(scene.load_image(cams[i])) for i in range(len(cams))}
 
+    view = {i: (t(c.viewmat), t(c.K)) for i, c in enumerate(cams)}
+
     def draw(i: int) -> torch.Tensor:
-        c = cams[i]
-        return render(means, log_scales, quats, logit_op, dc, t(c.viewmat), t(c.K), c.width, c.height,
+        return render(means, log_scales, quats, logit_op, dc, *view[i], cams[i].width, cams[i].height,
                       sh_degree=0, compiled=compiled).rgb
 
     t0 = time.perf_counter()

@@ -130,8 +130,11 @@ def _caustic_field(h, w, i):
 @pytest.fixture(scope="module")
 def caustic_scene(tmp_path_factory):
     """Captured images = clean renders + a per-view low-frequency caustic field; clean/ is GT."""
+    from recgs_addon.core.ply import write_gaussian_ply
+
     root = tmp_path_factory.mktemp("caustic") / "scene"
-    write_rendered_scene(root, n_views=10, width=48, height=36, n_gauss=300)
+    gt = write_rendered_scene(root, n_views=10, width=48, height=36, n_gauss=300)
+    write_gaussian_ply(root.parent / "gt.ply", gt)  # the true Gaussians, beside the survey
     shutil.copytree(root / "images", root / "clean")
     for i, p in enumerate(sorted((root / "clean").iterdir())):
         img = torch.from_numpy(read_image(p))
@@ -349,27 +352,21 @@ def test_benchmark_report_table_plots_and_gap(tmp_path):
         assert (tmp_path / name).stat().st_size > 1000
 
 
-def test_bound_tool_refits_colours_and_recovers_the_caustics(tmp_path):
+def test_bound_tool_refits_colours_and_recovers_the_caustics(caustic_scene):
     """benchmarks/bound_caustics.py: with the true geometry, colours refit to the clean photos
     stay exact, colours refit to the captured photos take in the caustics' average, and the
     RecGS rounds on the colours give training images much closer to ground truth than the photos."""
     from benchmarks.bound_caustics import bound
-    from recgs_addon.core.ply import write_gaussian_ply
 
-    root = tmp_path / "scene"
-    gt = write_rendered_scene(root, n_views=10, width=48, height=36, n_gauss=300)
-    shutil.copytree(root / "images", root / "clean")
-    captured = []
-    for i, p in enumerate(sorted((root / "clean").iterdir())):
-        img = torch.from_numpy(read_image(p))
-        write_image(root / "images" / p.name, (img + _caustic_field(36, 48, i)).clamp(0, 1).numpy())
-        captured.append(psnr(torch.from_numpy(read_image(root / "images" / p.name)), img))
-    write_gaussian_ply(tmp_path / "gt.ply", gt)
+    gt_ply = caustic_scene.parent / "gt.ply"
+    captured = np.mean([psnr(torch.from_numpy(read_image(p)),
+                             torch.from_numpy(read_image(caustic_scene / "clean" / p.name)))
+                        for p in sorted((caustic_scene / "images").iterdir())])
     kw = dict(steps=150, k=5, holdout_every=5, compiled=False, log=lambda m: None)
 
-    exact = bound(root, tmp_path / "gt.ply", targets="clean", rounds=0, **kw)
+    exact = bound(caustic_scene, gt_ply, targets="clean", rounds=0, **kw)
     assert exact[0]["heldout"] > 40 and exact[1]["heldout"] > 35, exact
 
-    rec = bound(root, tmp_path / "gt.ply", targets="captured", rounds=2, **kw)
+    rec = bound(caustic_scene, gt_ply, targets="captured", rounds=2, **kw)
     assert rec[1]["heldout"] < rec[0]["heldout"] - 5, rec  # the photos' caustics, averaged, got in
-    assert rec[-1]["train"] > np.mean(captured) + 5, (rec, np.mean(captured))
+    assert rec[-1]["train"] > captured + 5, (rec, captured)
