@@ -187,6 +187,39 @@ def _cull_rows(means, log_scales, quats, logit_opacities, viewmat, K, width, hei
         torch.clamp(r, 0.0, MAX_RADIUS)], dim=1)
 
 
+def _candidates(means, log_scales, logit_opacities, viewmat, K, width, height, near):
+    """(N,) bool: the Gaussians that may be visible, by a cheap conservative test (no grad).
+
+    A model of a million Gaussians has most of them outside any one view; the full cull pass
+    (rotation matrices, 2D covariance, eigenvalues) is run only on these. The test bounds the
+    2D covariance's largest eigenvalue by ``|J|_F^2 max(scale)^2 + dilation`` (J: the
+    projection Jacobian with INRIA's frustum clamp; the view rotation and the Gaussian's
+    rotation have norm 1), which is never below the exact one, and it widens that bound by
+    1 % and the screen rectangle by a pixel, so it never drops a Gaussian the exact test keeps.
+    """
+    f64 = torch.float64
+    Rw, tw = viewmat[:3, :3], viewmat[:3, 3]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    pc = means.to(f64) @ Rw.T + tw
+    z = pc[:, 2]
+    zs = torch.where(z > near, z, torch.ones_like(z))
+    limx = FRUSTUM_CLAMP * 0.5 * width / fx
+    limy = FRUSTUM_CLAMP * 0.5 * height / fy
+    jac2 = (fx * fx * (1 + limx * limx) + fy * fy * (1 + limy * limy)) / (zs * zs)
+    smax = torch.exp(2.0 * log_scales.to(f64).amax(1))
+    lam = 1.01 * (jac2 * smax + COV2D_DILATION)
+    o = torch.sigmoid(logit_opacities.to(f64))
+    log_term = torch.clamp_min(torch.log(torch.clamp_min(o, ALPHA_MIN) / ALPHA_MIN), 0.0)
+    extent = (2.0 * log_term) * (1.0 + 2.0 * BIN_MARGIN_REL) + BIN_MARGIN_ABS
+    rb = torch.sqrt(extent * lam) + 1.0
+    u = fx * pc[:, 0] / zs + cx
+    v = fy * pc[:, 1] / zs + cy
+    ok = (z > near) & (o >= ALPHA_MIN * (1 - 1e-9))
+    ok &= (u + rb >= 0) & (u - rb <= width) & (v + rb >= 0) & (v - rb <= height)
+    ok |= ~(torch.isfinite(u) & torch.isfinite(v) & torch.isfinite(rb))   # the exact pass decides
+    return ok & (z > near)
+
+
 _COMPILED: dict = {}
 
 
@@ -225,16 +258,20 @@ def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, wid
     if not near > 0:
         raise ValueError(f"near must be > 0, got {near}")
     with torch.no_grad():
+        cand = _maybe_compiled(_candidates, compiled)(
+            means.detach(), log_scales.detach(), logit_opacities.detach(), vm, Kd, width, height, near)
+        cand = torch.nonzero(cand).squeeze(1)
         info = _maybe_compiled(_cull_rows, compiled)(
-            means.detach().to(f64), log_scales.detach().to(f64), quats.detach().to(f64),
-            logit_opacities.detach().to(f64), vm, Kd, width, height, near, antialiased)
+            *(x.detach().index_select(0, cand).to(f64) for x in (means, log_scales, quats, logit_opacities)),
+            vm, Kd, width, height, near, antialiased)
         ok = info[:, 0] > 0
-        radii = torch.where(ok, torch.ceil(info[:, 13]), torch.zeros_like(info[:, 13]))
-        radii = radii.to(torch.int32)
+        radii = torch.zeros(means.shape[0], dtype=torch.int32)
+        radii[cand] = torch.where(ok, torch.ceil(info[:, 13]), torch.zeros_like(info[:, 13])).to(torch.int32)
         vis = torch.nonzero(ok).squeeze(1)
+        # cand is increasing, so the stable sort still breaks depth ties by Gaussian index
         order = torch.sort(info[:, 1].index_select(0, vis), stable=True).indices
-        ids = vis.index_select(0, order)
-        info = info.index_select(0, ids)
+        info = info.index_select(0, vis.index_select(0, order))
+        ids = cand.index_select(0, vis.index_select(0, order))
 
     q = _maybe_compiled(_project_rows, compiled)(
         *(x.index_select(0, ids).to(f64) for x in (means, log_scales, quats, logit_opacities)),

@@ -5,7 +5,8 @@ Entry point: :func:`render`. Design and measured speed: ``docs/rasterizer.md``.
 Pipeline
 --------
 1. :func:`recgs_addon.core.projection.project_gaussians` (per Gaussian, float64, autograd):
-   cull, EWA-project, 0.3 px dilation, opacity-aware radius, stable depth sort.
+   a cheap conservative candidate test, then the exact cull on the candidates, EWA-project,
+   0.3 px dilation, opacity-aware radius, stable depth sort.
 2. Colours from spherical harmonics (:mod:`recgs_addon.core.sh`, autograd).
 3. Binning (no gradient): every visible Gaussian is listed in each tile that its opacity-aware
    ellipse reaches (exact per tile row, not the bounding square); the list is stably sorted by
