@@ -1,0 +1,119 @@
+"""The trainer's step on a large model: what each speed-up buys, and what it changes.
+
+    .venv/bin/python benchmarks/bench_train_step.py MODEL.ply SCENE_DIR [--images clean]
+        [--steps 8] [--rounds 2] [--threads 2] [--count 0]
+
+Loads a trained model (e.g. a vanilla run's ``point_cloud.ply``, a million Gaussians or more)
+into a ``vanilla`` trainer on the survey and runs ``--steps`` full training steps (render,
+loss, backward, gradient statistics, Adam) from the same state with each speed-up turned off
+in turn, then with all of them off (the trainer as it was before them):
+
+* ``fused Adam``: one fused kernel per parameter group, against torch's foreach Adam;
+* ``SH blocks``: DC and higher SH coefficients joined only for the Gaussians in view, against
+  joining them for every Gaussian before the render;
+* ``pre-cull``: a conservative candidate test before the exact cull pass, against the exact
+  pass over every Gaussian.
+
+Prints seconds per step (median over the steps after a warm-up step, best of ``--rounds``
+interleaved rounds) and, for every path, the
+largest parameter difference from the fast path after the steps and the PSNR between the two
+paths' renders of the first held-out view: the error each speed-up costs. A warm-up path
+runs first (torch.compile).
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from recgs_addon.core import projection  # noqa: E402
+from recgs_addon.core.losses import psnr  # noqa: E402
+from recgs_addon.core.ply import read_gaussian_ply  # noqa: E402
+from recgs_addon.core.train import Trainer, make_trainer, preset  # noqa: E402
+
+
+class _JoinedSH(Trainer):
+    """The trainer before the SH-blocks change: every Gaussian's coefficients joined first."""
+
+    def _sh(self):
+        dc, rest = super()._sh()
+        return torch.cat([dc, rest], 1)
+
+
+def _all_candidates(means, *args):
+    return torch.ones(means.shape[0], dtype=torch.bool)
+
+
+def run_path(base: Trainer, state: dict, steps: int, fused: bool, blocks: bool, precull: bool):
+    """(seconds per step, trainer after the steps) from ``state``."""
+    tr = base if blocks else _JoinedSH(base.data, base.cfg, base.gaussians())
+    tr.load_state_dict(copy.deepcopy(state))
+    for g in tr.optimizer.param_groups:
+        g["fused"], g["foreach"] = (True, None) if fused else (None, True)
+    real = projection._candidates
+    projection._candidates = real if precull else _all_candidates
+    projection._COMPILED.pop(real, None)
+    projection._COMPILED.pop(_all_candidates, None)
+    try:
+        times = []
+        for _ in range(steps + 1):
+            t0 = time.perf_counter()
+            tr.train_step()
+            times.append(time.perf_counter() - t0)
+    finally:
+        projection._candidates = real
+    return statistics.median(times[1:]), tr
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("model", type=Path)
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("--images", default=None, help="image folder (e.g. clean)")
+    ap.add_argument("--steps", type=int, default=8)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--count", type=int, default=0, help="use this many of the model's Gaussians (0 = all)")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    g = read_gaussian_ply(args.model)
+    if args.count and len(g) > args.count:
+        g = g.subset(np.sort(np.random.default_rng(0).choice(len(g), args.count, replace=False)))
+    cfg = preset("vanilla", sh_degree=g.sh_degree)
+    base = make_trainer(args.scene, cfg, images=args.images, gaussians=g)
+    base.sh_degree = g.sh_degree
+    base.step = 5000                      # mid-densification: statistics are accumulated
+    state = copy.deepcopy(base.state_dict())
+    print(f"torch {torch.__version__}, {args.threads} threads; {len(g):,} Gaussians (SH {g.sh_degree}); "
+          f"{args.steps} steps per path, best of {args.rounds} rounds")
+    paths = [("all speed-ups", True, True, True), ("foreach Adam", False, True, True),
+             ("joined SH", True, False, True), ("no pre-cull", True, True, False),
+             ("none (before)", False, False, False)]
+    results, times = {}, {name: [] for name, *_ in paths}
+    run_path(make_trainer(args.scene, cfg, images=args.images, gaussians=g), state, 2, True, True, True)  # warm-up
+    for r in range(args.rounds):   # interleaved rounds, best round per path: a shared machine is noisy
+        for name, fused, blocks, precull in (paths if r % 2 == 0 else paths[::-1]):
+            t, tr = run_path(make_trainer(args.scene, cfg, images=args.images, gaussians=g),
+                             state, args.steps, fused, blocks, precull)
+            times[name].append(t)
+            results[name] = (min(times[name]), tr)
+    fast_t, fast = results["all speed-ups"]
+    view = fast.data.test_ids[0] if fast.data.test_ids else fast.data.train_ids[0]
+    ref = fast.render_view(view).clamp(0, 1)
+    print(f"{'path':>15} {'s/step':>8} {'x fast':>7} {'max |param diff|':>17} {'render PSNR vs fast':>20}")
+    for name, (t, tr) in results.items():
+        diff = max(float((tr.params[k] - fast.params[k]).detach().abs().max()) for k in fast.params)
+        p = psnr(tr.render_view(view).clamp(0, 1), ref) if tr is not fast else float("inf")
+        print(f"{name:>15} {t:8.3f} {t / fast_t:7.2f} {diff:17.2e} {p:20.1f}")
+
+
+if __name__ == "__main__":
+    main()
