@@ -155,6 +155,14 @@ def _project_rows(means, log_scales, quats, logit_opacities, viewmat, K, width, 
     return out
 
 
+def _draw_extent(opacity):
+    """(log_term, extent) per Gaussian: ``o exp(-r^2 / (2 lambda)) = 1/255`` at
+    ``r^2 = 2 log_term lambda`` (opacity-aware radius), and the squared Mahalanobis radius that
+    binning uses, slightly larger (never smaller than what float32 can draw)."""
+    log_term = torch.clamp_min(torch.log(torch.clamp_min(opacity, ALPHA_MIN) / ALPHA_MIN), 0.0)
+    return log_term, (2.0 * log_term) * (1.0 + 2.0 * BIN_MARGIN_REL) + BIN_MARGIN_ABS
+
+
 def _cull_rows(means, log_scales, quats, logit_opacities, viewmat, K, width, height, near,
                antialiased):
     """No-grad first pass over all Gaussians: projection, culling and screen extent.
@@ -166,11 +174,8 @@ def _cull_rows(means, log_scales, quats, logit_opacities, viewmat, K, width, hei
     p = _project_rows(means, log_scales, quats, logit_opacities, viewmat, K, width, height,
                       near, antialiased, extras=True)
     o = p["opacity"]
-    # Opacity-aware extent: o exp(-r^2 / (2 lambda_max)) = 1/255 on the major axis.
-    log_term = torch.clamp_min(torch.log(torch.clamp_min(o, ALPHA_MIN) / ALPHA_MIN), 0.0)
+    log_term, extent = _draw_extent(o)
     r = torch.sqrt(2.0 * log_term) * torch.sqrt(p["lam_max"])
-    # Binning uses a slightly larger region (never smaller than what float32 can draw).
-    extent = (2.0 * log_term) * (1.0 + 2.0 * BIN_MARGIN_REL) + BIN_MARGIN_ABS
     rb = torch.sqrt(extent * p["lam_max"])
     # Pixel (i, j) is centred at (i + 0.5, j + 0.5).
     x0 = torch.ceil(p["u"] - rb - 0.5)
@@ -209,13 +214,10 @@ def _candidates(means, log_scales, logit_opacities, viewmat, K, width, height, n
     smax = torch.exp(2.0 * log_scales.to(f64).amax(1))
     lam = 1.01 * (jac2 * smax + COV2D_DILATION)
     o = torch.sigmoid(logit_opacities.to(f64))
-    log_term = torch.clamp_min(torch.log(torch.clamp_min(o, ALPHA_MIN) / ALPHA_MIN), 0.0)
-    extent = (2.0 * log_term) * (1.0 + 2.0 * BIN_MARGIN_REL) + BIN_MARGIN_ABS
-    rb = torch.sqrt(extent * lam) + 1.0
+    rb = torch.sqrt(_draw_extent(o)[1] * lam) + 1.0
     u = fx * pc[:, 0] / zs + cx
     v = fy * pc[:, 1] / zs + cy
-    ok = (z > near) & (o >= ALPHA_MIN * (1 - 1e-9))
-    ok &= (u + rb >= 0) & (u - rb <= width) & (v + rb >= 0) & (v - rb <= height)
+    ok = (o >= ALPHA_MIN * (1 - 1e-9)) & (u + rb >= 0) & (u - rb <= width) & (v + rb >= 0) & (v - rb <= height)
     ok |= ~(torch.isfinite(u) & torch.isfinite(v) & torch.isfinite(rb))   # the exact pass decides
     return ok & (z > near)
 
@@ -269,9 +271,9 @@ def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, wid
         radii[cand] = torch.where(ok, torch.ceil(info[:, 13]), torch.zeros_like(info[:, 13])).to(torch.int32)
         vis = torch.nonzero(ok).squeeze(1)
         # cand is increasing, so the stable sort still breaks depth ties by Gaussian index
-        order = torch.sort(info[:, 1].index_select(0, vis), stable=True).indices
-        info = info.index_select(0, vis.index_select(0, order))
-        ids = cand.index_select(0, vis.index_select(0, order))
+        vis = vis.index_select(0, torch.sort(info[:, 1].index_select(0, vis), stable=True).indices)
+        info = info.index_select(0, vis)
+        ids = cand.index_select(0, vis)
 
     q = _maybe_compiled(_project_rows, compiled)(
         *(x.index_select(0, ids).to(f64) for x in (means, log_scales, quats, logit_opacities)),
