@@ -40,28 +40,19 @@ from recgs_addon.core.ply import read_gaussian_ply  # noqa: E402
 from recgs_addon.core.train import Trainer, make_trainer, preset  # noqa: E402
 
 
-class _JoinedSH(Trainer):
-    """The trainer before the SH-blocks change: every Gaussian's coefficients joined first."""
-
-    def _sh(self):
-        dc, rest = super()._sh()
-        return torch.cat([dc, rest], 1)
-
-
 def _all_candidates(means, *args):
     return torch.ones(means.shape[0], dtype=torch.bool)
 
 
-def run_path(base: Trainer, state: dict, steps: int, fused: bool, blocks: bool, precull: bool):
-    """(seconds per step, trainer after the steps) from ``state``."""
-    tr = base if blocks else _JoinedSH(base.data, base.cfg, base.gaussians())
+def run_path(tr: Trainer, state: dict, steps: int, fused: bool, blocks: bool, precull: bool):
+    """(seconds per step, trainer after the steps): ``tr`` from ``state`` on the given path."""
     tr.load_state_dict(copy.deepcopy(state))
+    if not blocks:   # the trainer before the SH-blocks change: every Gaussian's coefficients joined
+        tr._sh = lambda: torch.cat(Trainer._sh(tr), 1)
     for g in tr.optimizer.param_groups:
         g["fused"], g["foreach"] = (True, None) if fused else (None, True)
     real = projection._candidates
     projection._candidates = real if precull else _all_candidates
-    projection._COMPILED.pop(real, None)
-    projection._COMPILED.pop(_all_candidates, None)
     try:
         times = []
         for _ in range(steps + 1):
