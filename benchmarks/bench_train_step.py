@@ -9,8 +9,11 @@ loss, backward, gradient statistics, Adam) from the same state with each speed-u
 in turn, then with all of them off (the trainer as it was before them):
 
 * ``fused Adam``: one fused kernel per parameter group, against torch's foreach Adam;
+* ``row grads``: gradients only at the rows in view, written into persistent buffers
+  (:mod:`recgs_addon.core.rowgrads`), against autograd's full-size index_select backward;
 * ``SH blocks``: DC and higher SH coefficients joined only for the Gaussians in view, against
-  joining them for every Gaussian before the render;
+  joining them for every Gaussian before the render (timed with autograd's gradients, as it
+  was; with row grads the join is of the rows only anyway);
 * ``pre-cull``: a conservative candidate test before the exact cull pass, against the exact
   pass over every Gaussian.
 
@@ -37,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from recgs_addon.core import projection  # noqa: E402
 from recgs_addon.core.losses import psnr  # noqa: E402
 from recgs_addon.core.ply import read_gaussian_ply  # noqa: E402
+from recgs_addon.core.rowgrads import RowGrads  # noqa: E402
 from recgs_addon.core.train import Trainer, make_trainer, preset  # noqa: E402
 
 
@@ -44,11 +48,26 @@ def _all_candidates(means, *args):
     return torch.ones(means.shape[0], dtype=torch.bool)
 
 
-def run_path(tr: Trainer, state: dict, steps: int, fused: bool, blocks: bool, precull: bool):
-    """(seconds per step, trainer after the steps): ``tr`` from ``state`` on the given path."""
+class _JoinedSH(RowGrads):
+    """Autograd gradients, and every Gaussian's SH coefficients joined before the render."""
+
+    def __init__(self):
+        super().__init__(sparse=False)
+
+    def track(self, name, param, cols=None):
+        if name == "sh_dc":
+            self._dc = param
+            return param[:, :0]          # an empty block: render skips it
+        if name == "sh_rest":
+            return torch.cat([self._dc, param[:, :cols]], 1)
+        return super().track(name, param, cols)
+
+
+def run_path(tr: Trainer, state: dict, steps: int, fused: bool, grads: str, precull: bool):
+    """(seconds per step, trainer after the steps): ``tr`` from ``state`` on the given path;
+    grads: "rows" (RowGrads), "dense" (autograd) or "joined" (autograd, SH joined)."""
     tr.load_state_dict(copy.deepcopy(state))
-    if not blocks:   # the trainer before the SH-blocks change: every Gaussian's coefficients joined
-        tr._sh = lambda: torch.cat(Trainer._sh(tr), 1)
+    tr.row_grads = {"rows": RowGrads, "dense": lambda: RowGrads(sparse=False), "joined": _JoinedSH}[grads]()
     for g in tr.optimizer.param_groups:
         g["fused"], g["foreach"] = (True, None) if fused else (None, True)
     real = projection._candidates
@@ -85,15 +104,15 @@ def main() -> None:
     state = copy.deepcopy(base.state_dict())
     print(f"torch {torch.__version__}, {args.threads} threads; {len(g):,} Gaussians (SH {g.sh_degree}); "
           f"{args.steps} steps per path, best of {args.rounds} rounds")
-    paths = [("all speed-ups", True, True, True), ("foreach Adam", False, True, True),
-             ("joined SH", True, False, True), ("no pre-cull", True, True, False),
-             ("none (before)", False, False, False)]
+    paths = [("all speed-ups", True, "rows", True), ("foreach Adam", False, "rows", True),
+             ("autograd grads", True, "dense", True), ("+ joined SH", True, "joined", True),
+             ("no pre-cull", True, "rows", False), ("none (before)", False, "joined", False)]
     results, times = {}, {name: [] for name, *_ in paths}
-    run_path(make_trainer(args.scene, cfg, images=args.images, gaussians=g), state, 2, True, True, True)  # warm-up
+    run_path(make_trainer(args.scene, cfg, images=args.images, gaussians=g), state, 2, True, "rows", True)  # warm-up
     for r in range(args.rounds):   # interleaved rounds, best round per path: a shared machine is noisy
-        for name, fused, blocks, precull in (paths if r % 2 == 0 else paths[::-1]):
+        for name, fused, grads, precull in (paths if r % 2 == 0 else paths[::-1]):
             t, tr = run_path(make_trainer(args.scene, cfg, images=args.images, gaussians=g),
-                             state, args.steps, fused, blocks, precull)
+                             state, args.steps, fused, grads, precull)
             times[name].append(t)
             results[name] = (min(times[name]), tr)
     fast_t, fast = results["all speed-ups"]

@@ -14,6 +14,7 @@ import torch
 from conftest import ROOT, write_rendered_scene
 from recgs_addon.core import density
 from recgs_addon.core.errors import RecGSError
+from recgs_addon.core.rowgrads import RowGrads
 from recgs_addon.core.train import holdout_split, make_trainer, preset
 
 
@@ -134,6 +135,60 @@ def test_fused_adam_matches_foreach_and_old_checkpoints_resume_fused(small_scene
     resumed.run()
     for k in fused.params:
         assert torch.allclose(resumed.params[k], plain.params[k], rtol=1e-4, atol=1e-5), k
+
+
+def test_row_sparse_gradients_train_exactly_like_autograd(small_scene):
+    """RowGrads (gradients only at the rows in view, persistent buffers) trains bit for bit
+    like plain autograd's full-size index_select backward: through densification, pruning, an
+    opacity reset and SH degrees rising from 0 (the rest block joins the optimiser late)."""
+    kw = dict(sh_policy="schedule", sh_every=30, sh_degree=2, opacity_reset_every=60, iterations=100)
+    sparse = make_trainer(small_scene, tiny_cfg(**kw))
+    partial = []
+    write = sparse.row_grads.write
+
+    def spy():
+        leaf, ids = sparse.row_grads._leaves["means"]
+        partial.append(ids.shape[0] < sparse.params["means"].shape[0])
+        write()
+    sparse.row_grads.write = spy
+    sparse.run()
+    plain = make_trainer(small_scene, tiny_cfg(**kw))
+    plain.row_grads = RowGrads(sparse=False)
+    plain.run()
+    assert any(partial) and sparse.sh_degree == 2
+    assert len(sparse.params["means"]) != len(make_trainer(small_scene, tiny_cfg(**kw)).params["means"])
+    for k in plain.params:
+        assert torch.equal(sparse.params[k], plain.params[k]), k
+    for ps, pp in zip(sparse.optimizer.param_groups, plain.optimizer.param_groups):
+        ss, sp = sparse.optimizer.state[ps["params"][0]], plain.optimizer.state[pp["params"][0]]
+        assert ss.keys() == sp.keys(), ps["name"]
+        for key in ss:
+            assert torch.equal(ss[key], sp[key]), (ps["name"], key)
+
+
+def test_row_grads_refuses_two_row_sets_and_leaves_untouched_params_alone():
+    means = torch.nn.Parameter(torch.randn(10, 3))
+    other = torch.nn.Parameter(torch.randn(10, 3))
+    rg = RowGrads()
+    m = rg.track("means", means)
+    rg.track("other", other)
+    a = rg(m, torch.tensor([1, 4]))
+    assert rg(m, torch.tensor([1, 4])) is a
+    with pytest.raises(ValueError, match="two different row sets"):
+        rg(m, torch.tensor([2, 4]))
+    (a ** 2).sum().backward()
+    rg.write()
+    assert other.grad is None
+    expected = torch.zeros(10, 3)
+    expected[[1, 4]] = 2 * means.detach()[[1, 4]]
+    assert torch.equal(means.grad, expected)
+    means.grad = None                       # the optimiser's zero_grad(set_to_none=True)
+    m = rg.track("means", means)
+    (rg(m, torch.tensor([7])) * 3).sum().backward()
+    rg.write()
+    expected = torch.zeros(10, 3)
+    expected[7] = 3.0
+    assert torch.equal(means.grad, expected)     # last step's rows were cleared
 
 
 @pytest.mark.parametrize("kwargs,msg", [

@@ -235,7 +235,7 @@ def _maybe_compiled(fn, compiled: bool):
 
 
 def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, width, height,
-                      near=0.2, antialiased=False, compiled=False) -> Projection:
+                      near=0.2, antialiased=False, compiled=False, gather=None) -> Projection:
     """Cull, project and depth-sort Gaussians (see :class:`Projection` for the outputs).
 
     Args:
@@ -249,6 +249,8 @@ def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, wid
         near: Gaussians with camera-space z <= near are culled (scene units; INRIA: 0.2).
         antialiased: multiply opacity by sqrt(det(cov2d) / det(cov2d + 0.3 I)).
         compiled: run the per-Gaussian maths through torch.compile (same results to ~1e-15).
+        gather: ``gather(x, ids)`` reads the visible rows of each input for the differentiable
+            pass (default ``x.index_select(0, ids)``); see :mod:`recgs_addon.core.rowgrads`.
 
     Culling (radius 0): z <= near; opacity < 1/255; no pixel centre of the image within the
     opacity-aware radius ``ceil(sqrt(2 ln(255 o)) sqrt(lambda_max))``, beyond which
@@ -275,14 +277,20 @@ def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, wid
         info = info.index_select(0, vis)
         ids = cand.index_select(0, vis)
 
+    if gather is None:
+        gather = _index_rows
     q = _maybe_compiled(_project_rows, compiled)(
-        *(x.index_select(0, ids).to(f64) for x in (means, log_scales, quats, logit_opacities)),
+        *(gather(x, ids).to(f64) for x in (means, log_scales, quats, logit_opacities)),
         vm, Kd, width, height, near, antialiased)
     means2d = torch.stack([q["u"], q["v"]], dim=-1)
     chol = torch.stack([q["l11"], q["l21"], q["l22"]], dim=-1)
     return Projection(ids=ids, means2d=means2d, chol=chol, opacity=q["opacity"], depth=q["z"],
                       radii=radii, bbox=info[:, 9:13].to(torch.int64), cov2d=info[:, 4:8],
                       extent=info[:, 8])
+
+
+def _index_rows(x: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+    return x.index_select(0, ids)
 
 
 def camera_centre(viewmat: torch.Tensor) -> torch.Tensor:

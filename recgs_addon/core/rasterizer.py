@@ -34,7 +34,7 @@ from typing import NamedTuple, Optional
 
 import torch
 
-from .projection import ALPHA_MIN, camera_centre, project_gaussians
+from .projection import ALPHA_MIN, _index_rows, camera_centre, project_gaussians
 from .sh import eval_sh_colour
 
 #: Alpha is clamped here (INRIA): one Gaussian never makes a pixel fully opaque, which also
@@ -528,7 +528,7 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
            background: Optional[torch.Tensor] = None, antialiased: bool = False,
            near: float = DEFAULT_NEAR, tile_size: int = DEFAULT_TILE_SIZE,
            compiled: Optional[bool] = None, chunk_pairs: int = DEFAULT_CHUNK_PAIRS,
-           low_memory: bool = False) -> RenderOutput:
+           low_memory: bool = False, gather=None) -> RenderOutput:
     """Render 3D Gaussians into one pinhole view, differentiably (INRIA 3DGS maths, CPU).
 
     Args:
@@ -558,6 +558,9 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
         chunk_pairs: (pixel, Gaussian) pairs per chunk (working-set size).
         low_memory: keep no per-pair state between forward and backward (the backward
             replays the forward chunk by chunk): about 8 bytes less per pair, ~1/3 slower.
+        gather: ``gather(x, ids)`` reads rows ``ids`` (the visible Gaussians) of a
+            per-Gaussian input; default ``x.index_select(0, ids)``. A trainer passes a
+            :class:`recgs_addon.core.rowgrads.RowGrads` so that gradients stay row-sparse.
 
     The dtype of ``means`` (float32 or float64) sets the compositing precision; the
     per-Gaussian projection is always float64. Gradients reach every input through
@@ -575,14 +578,16 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
 
     proj = project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K,
                              width, height, near=near, antialiased=antialiased,
-                             compiled=kern.compiled)
+                             compiled=kern.compiled, gather=gather)
     ids = proj.ids
+    if gather is None:
+        gather = _index_rows
     # View direction: from the camera centre to the Gaussian (world axes), INRIA.
     # Visible Gaussians have z > near > 0, so the direction is never zero.
     campos = camera_centre(viewmat.detach().to(torch.float64))
-    dirs = means.index_select(0, ids).to(torch.float64) - campos
+    dirs = gather(means, ids).to(torch.float64) - campos
     dirs = dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True)
-    sh_vis = torch.cat([b.index_select(0, ids) for b in blocks if b.shape[1]], 1)
+    sh_vis = torch.cat([gather(b, ids) for b in blocks if b.shape[1]], 1)
     colours = _sh_fn(kern.compiled)(sh_degree, sh_vis.to(dtype), dirs.to(dtype))
     values = torch.cat([colours, proj.depth.to(dtype).unsqueeze(1),
                         torch.ones(ids.shape[0], 1, dtype=dtype)], dim=1)

@@ -30,6 +30,7 @@ from .errors import RecGSError
 from .gaussians import GaussianSet, init_from_points, num_sh_coeffs
 from .losses import psnr, ssim, training_loss
 from .rasterizer import render
+from .rowgrads import RowGrads
 
 #: Smallest image side (pixels) accepted after downscaling.
 MIN_IMAGE_SIDE = 8
@@ -255,6 +256,7 @@ class Trainer:
         self.params = self._params_from(gaussians)
         self.optimizer = self._make_optimizer()
         self.stats = density.GradientStats.zeros(len(gaussians))
+        self.row_grads = RowGrads()   # gradients of the rows in view only (large models)
         self.step = 0
         self.elapsed = 0.0
         self.order: list[int] = []
@@ -334,12 +336,17 @@ class Trainer:
             if g["name"] == "means":
                 g["lr"] = self._means_lr()
         viewmat, K = _view_tensors(cam, self.device)
-        p = self.params
-        out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
+        rg = self.row_grads
+        p = {n: rg.track(n, v) for n, v in self.params.items() if n not in ("sh_dc", "sh_rest")}
+        sh = (rg.track("sh_dc", self.params["sh_dc"]),
+              rg.track("sh_rest", self.params["sh_rest"], cols=num_sh_coeffs(self.sh_degree) - 1))
+        out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], sh,
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                     background=torch.tensor(c.background, dtype=torch.float32), compiled=c.compiled)
+                     background=torch.tensor(c.background, dtype=torch.float32), compiled=c.compiled,
+                     gather=rg)
         loss = training_loss(self._prediction(out.rgb, index), img, c.lambda_dssim)
         loss.backward()
+        rg.write()   # .grad of the parameters: the visible rows' gradients, zero elsewhere
         if self._densifying() and out.means2d.grad is not None:
             self.stats.add(out.means2d.grad, out.radii, cam.width, cam.height)
         self.optimizer.step()
