@@ -206,6 +206,26 @@ def test_precull_never_drops_a_visible_gaussian(seed):
     assert torch.equal(proj.cov2d, exact[proj.ids, 4:8])
 
 
+def test_precull_bound_is_tight_where_it_matters():
+    """Many large, opaque Gaussians whose footprints end near the image edge: the candidate
+    test keeps every one the exact pass draws (bounds from the mean scale, or without the
+    Jacobian's x/z and y/z terms, drop some of these), and it drops most of those that the
+    exact pass culls."""
+    from recgs_addon.core import projection
+
+    scene = make_scene(7, n=20000, width=37, height=23, deg=0, depth=(0.5, 4.0),
+                       scale=(0.05, 1.0), logit=(3.0, 6.0), spread=8.0)
+    f64 = torch.float64
+    means, log_scales, quats, logits = (torch.tensor(x, dtype=f64) for x in scene["params"][:4])
+    vm, K = (torch.tensor(scene[k], dtype=f64) for k in ("viewmat", "K"))
+    exact = projection._cull_rows(means, log_scales, quats, logits, vm, K, 37, 23, 0.2, False)
+    drawn = exact[:, 0] > 0
+    cand = projection._candidates(means, log_scales, logits, vm, K, 37, 23, 0.2)
+    assert not (drawn & ~cand).any()
+    assert 0.05 < drawn.float().mean() < 0.9
+    assert (cand & ~drawn).sum() < 0.5 * (~drawn).sum()
+
+
 @pytest.mark.parametrize("tile_size", [1, 4, 16, 32])
 def test_tile_size_and_chunking_do_not_change_results(tile_size):
     scene = make_scene(4, n=80, width=45, height=27)
