@@ -178,6 +178,19 @@ def test_radii_and_culling_match_reference():
     assert out.radii.dtype == torch.int32
 
 
+def _precull_vs_exact(scene):
+    """(float64 inputs, the exact cull rows over all Gaussians, drawn (N,), candidates (N,))
+    for a 37x23 view of ``scene``."""
+    from recgs_addon.core import projection
+
+    f64 = torch.float64
+    means, log_scales, quats, logits = (torch.tensor(x, dtype=f64) for x in scene["params"][:4])
+    vm, K = (torch.tensor(scene[k], dtype=f64) for k in ("viewmat", "K"))
+    exact = projection._cull_rows(means, log_scales, quats, logits, vm, K, 37, 23, 0.2, False)
+    cand = projection._candidates(means, log_scales, logits, vm, K, 37, 23, 0.2)
+    return (means, log_scales, quats, logits, vm, K), exact, exact[:, 0] > 0, cand
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_precull_never_drops_a_visible_gaussian(seed):
     """The cheap candidate test in front of the cull pass keeps every Gaussian that the exact
@@ -190,12 +203,7 @@ def test_precull_never_drops_a_visible_gaussian(seed):
                        scale=(1e-4, 10.0), logit=(-2.0, 4.0), spread=4.0)
     scene["params"][1] = np.log(np.exp(scene["params"][1]) ** np.random.default_rng(seed).uniform(
         0.5, 1.5, (4000, 3)))
-    f64 = torch.float64
-    means, log_scales, quats, logits = (torch.tensor(x, dtype=f64) for x in scene["params"][:4])
-    vm, K = (torch.tensor(scene[k], dtype=f64) for k in ("viewmat", "K"))
-    exact = projection._cull_rows(means, log_scales, quats, logits, vm, K, 37, 23, 0.2, False)
-    drawn = exact[:, 0] > 0
-    cand = projection._candidates(means, log_scales, logits, vm, K, 37, 23, 0.2)
+    (means, log_scales, quats, logits, vm, K), exact, drawn, cand = _precull_vs_exact(scene)
     assert not (drawn & ~cand).any()
     assert 0.02 < drawn.float().mean() < 0.9 and cand.float().mean() < 0.95   # a real test
     proj = projection.project_gaussians(means, log_scales, quats, logits, vm, K, 37, 23)
@@ -211,16 +219,9 @@ def test_precull_bound_is_tight_where_it_matters():
     test keeps every one the exact pass draws (bounds from the mean scale, or without the
     Jacobian's x/z and y/z terms, drop some of these), and it drops most of those that the
     exact pass culls."""
-    from recgs_addon.core import projection
-
     scene = make_scene(7, n=20000, width=37, height=23, deg=0, depth=(0.5, 4.0),
                        scale=(0.05, 1.0), logit=(3.0, 6.0), spread=8.0)
-    f64 = torch.float64
-    means, log_scales, quats, logits = (torch.tensor(x, dtype=f64) for x in scene["params"][:4])
-    vm, K = (torch.tensor(scene[k], dtype=f64) for k in ("viewmat", "K"))
-    exact = projection._cull_rows(means, log_scales, quats, logits, vm, K, 37, 23, 0.2, False)
-    drawn = exact[:, 0] > 0
-    cand = projection._candidates(means, log_scales, logits, vm, K, 37, 23, 0.2)
+    _, _, drawn, cand = _precull_vs_exact(scene)
     assert not (drawn & ~cand).any()
     assert 0.05 < drawn.float().mean() < 0.9
     assert (cand & ~drawn).sum() < 0.5 * (~drawn).sum()
