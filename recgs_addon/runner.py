@@ -123,8 +123,8 @@ def tune_allocator() -> str:
     0.648 s a step with glibc's defaults; with mmap off and trimming at 2 GB, 12,748 faults
     and 0.485 s (1.33x), peak memory 3142 MB instead of 3110, parameters identical. A job is
     a process of its own, so holding freed memory until it exits costs nothing else.
-    ``RECGS_MALLOC=system`` keeps glibc's
-    defaults. Returns what was done: ``"retained"`` or ``"system"``.
+    ``RECGS_MALLOC=system`` keeps glibc's defaults. Returns what was done: ``"retained"`` or
+    ``"system"``.
     """
     if os.environ.get("RECGS_MALLOC", "").lower() == "system" or not sys.platform.startswith("linux"):
         return "system"

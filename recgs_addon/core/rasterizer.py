@@ -576,12 +576,12 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
         background = torch.zeros(3, dtype=dtype)
     background = background.to(dtype)
 
+    if gather is None:
+        gather = _index_rows
     proj = project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K,
                              width, height, near=near, antialiased=antialiased,
                              compiled=kern.compiled, gather=gather)
     ids = proj.ids
-    if gather is None:
-        gather = _index_rows
     # View direction: from the camera centre to the Gaussian (world axes), INRIA.
     # Visible Gaussians have z > near > 0, so the direction is never zero.
     campos = camera_centre(viewmat.detach().to(torch.float64))

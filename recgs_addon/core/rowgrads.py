@@ -58,7 +58,7 @@ class RowGrads:
         #: False: plain autograd (``track`` is a no-op, ``write`` does nothing); for comparisons.
         self.sparse = sparse
         self._sources: dict[int, tuple] = {}    # id(tensor given to render) -> (name, param, cols, tensor)
-        self._leaves: dict[str, tuple] = {}     # name -> (rows given to render, grad slot, ids)
+        self._leaves: dict[str, tuple] = {}     # name -> (rows given to render, grad slot, ids, param, cols)
         self._buffers: dict[str, torch.Tensor] = {}
         self._written: dict[str, torch.Tensor] = {}   # name -> rows that are non-zero in its buffer
 
@@ -78,11 +78,11 @@ class RowGrads:
         """``x[ids]``, differentiable into :meth:`write` for a tracked tensor, else plain
         index_select."""
         src = self._sources.get(id(x))
-        if src is None or src[3] is not x:
+        if src is None:
             return x.index_select(0, ids)
         name, param, cols, _ = src
         if name in self._leaves:     # the same rows read twice (means: projection, view dirs)
-            rows_out, slot, rows = self._leaves[name]
+            rows_out, _, rows, _, _ = self._leaves[name]
             if rows is ids or torch.equal(rows, ids):
                 return rows_out
             raise ValueError(f"RowGrads: {name!r} gathered at two different row sets in one render")
@@ -90,17 +90,16 @@ class RowGrads:
         leaf = base.index_select(0, ids).requires_grad_(param.requires_grad)
         slot = {"grad": None}
         rows_out = _Collect.apply(leaf, slot) if param.requires_grad else leaf
-        self._leaves[name] = (rows_out, slot, ids)
+        self._leaves[name] = (rows_out, slot, ids, param, cols)
         return rows_out
 
     def write(self) -> None:
         """After ``backward``: set each gathered parameter's ``.grad`` to its full-size buffer
         holding the rows' gradients (zero elsewhere); then forget this render's leaves."""
         with torch.no_grad():
-            for name, (_, slot, ids) in self._leaves.items():
+            for name, (_, slot, ids, param, cols) in self._leaves.items():
                 if slot["grad"] is None:
                     continue
-                param, cols = next((p, c) for n, p, c, _ in self._sources.values() if n == name)
                 buf = self._buffers.get(name)
                 if (buf is None or buf.shape != param.shape or buf.dtype != param.dtype
                         or buf.device != param.device):
@@ -112,12 +111,5 @@ class RowGrads:
                 target.index_copy_(0, ids, slot["grad"])
                 self._written[name] = ids
                 param.grad = buf
-        self._leaves.clear()
-        self._sources.clear()
-
-    def reset(self) -> None:
-        """Drop the buffers (e.g. after the model's size changed; also done automatically)."""
-        self._buffers.clear()
-        self._written.clear()
         self._leaves.clear()
         self._sources.clear()

@@ -337,10 +337,9 @@ class Trainer:
                 g["lr"] = self._means_lr()
         viewmat, K = _view_tensors(cam, self.device)
         rg = self.row_grads
-        p = {n: rg.track(n, v) for n, v in self.params.items() if n not in ("sh_dc", "sh_rest")}
-        sh = (rg.track("sh_dc", self.params["sh_dc"]),
-              rg.track("sh_rest", self.params["sh_rest"], cols=num_sh_coeffs(self.sh_degree) - 1))
-        out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], sh,
+        k = num_sh_coeffs(self.sh_degree)   # active SH coefficients, as in _sh()
+        p = {n: rg.track(n, v, cols=k - 1 if n == "sh_rest" else None) for n, v in self.params.items()}
+        out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (p["sh_dc"], p["sh_rest"]),
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
                      background=torch.tensor(c.background, dtype=torch.float32), compiled=c.compiled,
                      gather=rg)
