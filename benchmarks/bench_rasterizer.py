@@ -141,6 +141,31 @@ def measure(n, width, height, path, repeats, threads=2, **kw):
                 compiled=stats["compiled"], **kw)
 
 
+def accuracy(n=400, width=64, height=48):
+    """Error of the float32 render against the float64 references on a small survey scene:
+    forward colour against the dense numpy oracle (tests/reference_render.py), and the
+    gradients of the benchmark loss against the same rasterizer in float64 (which the test
+    suite checks against central differences of the oracle). Returns a dict of figures."""
+    sys.path.insert(0, os.path.join(ROOT, "tests"))
+    from reference_render import reference_render
+
+    scene = survey_scene(n, width, height)
+    ref = reference_render(*[p.double().numpy() for p in scene["params"]], scene["viewmat"].double().numpy(),
+                           scene["K"].double().numpy(), width, height)
+    grads = {}
+    for dtype in (torch.float32, torch.float64):
+        params = [p.detach().to(dtype).clone().requires_grad_(True) for p in scene["params"]]
+        out = render(*params, scene["viewmat"].to(dtype), scene["K"].to(dtype), width, height, compiled=False)
+        loss = out.rgb.square().mean() + out.alpha.mean() + 0.01 * out.depth.mean()
+        loss.backward()
+        grads[dtype] = [p.grad.double() for p in params]
+        if dtype == torch.float32:
+            fwd_err = float(np.abs(out.rgb.detach().double().numpy() - ref["rgb"]).max())
+    rel = max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-30))
+              for a, b in zip(grads[torch.float32], grads[torch.float64]))
+    return dict(n=n, size=f"{width}x{height}", forward_max_abs=fwd_err, grad_max_rel=rel)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="only 320x240 with 50k Gaussians")
@@ -167,6 +192,10 @@ def main():
     counts = [50000] if args.quick else [int(c) for c in args.counts.split(",")]
     print(f"torch {torch.__version__}, threads {args.threads}, repeats {args.repeats}, "
           f"options {kw}; times: median (min) in seconds")
+    acc = accuracy()
+    print(f"error at {acc['n']} Gaussians, {acc['size']}: forward max |rgb - float64 oracle| "
+          f"{acc['forward_max_abs']:.2e}; gradients max |float32 - float64| / max |float64| "
+          f"{acc['grad_max_rel']:.2e}")
     hdr = (f"{'size':>8} {'N':>7} {'path':>8} {'fwd s':>15} {'fwd+bwd s':>15} {'peak MB':>8} "
            f"{'visible':>7} {'isect':>8} {'pairs':>10} {'Mpairs/s':>8} {'ns/pair':>7} "
            f"{'warmup s':>8}")
