@@ -31,8 +31,9 @@ def child(args) -> None:
     import numpy as np
     import torch
 
-    from recgs_addon.core.ply import read_gaussian_ply
-    from recgs_addon.core.train import make_trainer, preset
+    from recgs_addon.core.io.ply import read_gaussian_ply
+    from recgs_addon.core.train.config import preset
+    from recgs_addon.core.train.trainer import make_trainer
 
     torch.set_num_threads(args.threads)
     g = read_gaussian_ply(args.model)

@@ -29,7 +29,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from recgs_addon.core.report import write_benchmark_report  # noqa: E402
+from recgs_addon.core.outputs.report import write_benchmark_report  # noqa: E402
 
 SURVEYS = {
     "sample": None,

@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 def write_big_model(root: Path, n_points: int, n_images: int, w=64, h=48) -> None:
     import pycolmap
 
-    from recgs_addon.core.images import write_image
+    from recgs_addon.core.io.images import write_image
 
     rng = np.random.default_rng(0)
     txt = root / "txt"
@@ -74,8 +74,8 @@ def main() -> None:
         write_big_model(root, args.points, args.images)
         print(f"wrote a {args.points}-point, {args.images}-image model in {time.perf_counter() - t0:.1f} s")
 
-        from recgs_addon.core.colmap import load_scene
-        from recgs_addon.core.gaussians import init_from_points
+        from recgs_addon.core.io.colmap import load_scene
+        from recgs_addon.core.model.gaussians import init_from_points
 
         t0 = time.perf_counter()
         scene = load_scene(root)

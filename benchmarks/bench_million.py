@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT))
 
 
 def random_set(n: int, degree: int, seed: int):
-    from recgs_addon.core.gaussians import GaussianSet
+    from recgs_addon.core.model.gaussians import GaussianSet
 
     rng = np.random.default_rng(seed)
     k = (degree + 1) ** 2
@@ -60,7 +60,7 @@ def main() -> None:
         rows.append((what, seconds, note))
         print(f"{what:<48} {seconds:8.2f} s  {note}", flush=True)
 
-    from recgs_addon.core.ply import read_gaussian_ply, write_gaussian_ply
+    from recgs_addon.core.io.ply import read_gaussian_ply, write_gaussian_ply
 
     with tempfile.TemporaryDirectory(prefix="recgs_bench_") as tmp:
         a, b = Path(tmp) / "a.ply", Path(tmp) / "b.ply"

@@ -1,4 +1,4 @@
-"""Speed and memory of recgs_addon.core.rasterizer.render on survey-like scenes.
+"""Speed and memory of recgs_addon.core.render.rasterizer.render on survey-like scenes.
 
 Usage (from the repository root):
     python benchmarks/bench_rasterizer.py            # 320x240 and 640x480, 10k/50k/200k
@@ -30,7 +30,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
-from recgs_addon.core.rasterizer import render  # noqa: E402
+from recgs_addon.core.render.rasterizer import render  # noqa: E402
 
 
 def survey_scene(n, width, height, seed=0, sh_degree=3):

@@ -10,7 +10,7 @@ in turn, then with all of them off (the trainer as it was before them):
 
 * ``fused Adam``: one fused kernel per parameter group, against torch's foreach Adam;
 * ``row grads``: gradients only at the rows in view, written into persistent buffers
-  (:mod:`recgs_addon.core.rowgrads`), against autograd's full-size index_select backward;
+  (:mod:`recgs_addon.core.render.rowgrads`), against autograd's full-size index_select backward;
 * ``SH blocks``: DC and higher SH coefficients joined only for the Gaussians in view, against
   joining them for every Gaussian before the render (timed with autograd's gradients, as it
   was; with row grads the join is of the rows only anyway);
@@ -37,11 +37,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from recgs_addon.core import projection  # noqa: E402
-from recgs_addon.core.losses import psnr  # noqa: E402
-from recgs_addon.core.ply import read_gaussian_ply  # noqa: E402
-from recgs_addon.core.rowgrads import RowGrads  # noqa: E402
-from recgs_addon.core.train import Trainer, make_trainer, preset  # noqa: E402
+from recgs_addon.core.render import projection  # noqa: E402
+from recgs_addon.core.train.losses import psnr  # noqa: E402
+from recgs_addon.core.io.ply import read_gaussian_ply  # noqa: E402
+from recgs_addon.core.render.rowgrads import RowGrads  # noqa: E402
+from recgs_addon.core.train.config import preset  # noqa: E402
+from recgs_addon.core.train.trainer import Trainer, make_trainer  # noqa: E402
 
 
 def _all_candidates(means, *args):

@@ -23,10 +23,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from recgs_addon.core.colmap import load_scene  # noqa: E402
-from recgs_addon.core.losses import training_loss  # noqa: E402
-from recgs_addon.core.ply import read_gaussian_ply  # noqa: E402
-from recgs_addon.core.rasterizer import render  # noqa: E402
+from recgs_addon.core.io.colmap import load_scene  # noqa: E402
+from recgs_addon.core.train.losses import training_loss  # noqa: E402
+from recgs_addon.core.io.ply import read_gaussian_ply  # noqa: E402
+from recgs_addon.core.render.rasterizer import render  # noqa: E402
 
 
 def main() -> None:

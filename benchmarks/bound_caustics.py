@@ -29,12 +29,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from recgs_addon.core import caustics  # noqa: E402
-from recgs_addon.core.colmap import load_scene  # noqa: E402
-from recgs_addon.core.losses import psnr  # noqa: E402
-from recgs_addon.core.ply import read_gaussian_ply  # noqa: E402
-from recgs_addon.core.rasterizer import render  # noqa: E402
-from recgs_addon.core.train import holdout_split  # noqa: E402
+from recgs_addon.core.caustics import fft_filter as caustics  # noqa: E402
+from recgs_addon.core.io.colmap import load_scene  # noqa: E402
+from recgs_addon.core.train.losses import psnr  # noqa: E402
+from recgs_addon.core.io.ply import read_gaussian_ply  # noqa: E402
+from recgs_addon.core.render.rasterizer import render  # noqa: E402
+from recgs_addon.core.train.data import holdout_split  # noqa: E402
 
 ROUND_STEPS = 200
 

@@ -14,7 +14,7 @@ Commands
 ``render MODEL.ply SCENE_DIR --out DIR [--names a.png,b.png]``
     Renders a model from the survey's cameras (PNG and float EXR) and reports PSNR.
 ``sfm PHOTO_DIR --out SCENE_DIR [--link] [--overwrite]``
-    Structure from motion with pycolmap (``recgs_addon.core.sfm``): copies (or links) the
+    Structure from motion with pycolmap (``recgs_addon.core.io.sfm``): copies (or links) the
     photos to SCENE_DIR/images and writes the COLMAP model to SCENE_DIR/sparse/0, ready for
     ``import`` and ``train``. Progress as JSON lines, like ``train``.
 """
@@ -92,7 +92,7 @@ def cmd_import(args) -> int:
         return 2
     from . import blender as addon
     from .blender.gaussian_object import read_mesh
-    from .core.ply import read_gaussian_ply
+    from .core.io.ply import read_gaussian_ply
 
     out = args.out
     t_start = time.perf_counter()
@@ -155,7 +155,7 @@ def cmd_import(args) -> int:
 
 def cmd_info(args) -> int:
     from .core.errors import RecGSError
-    from .core.ply import read_gaussian_ply
+    from .core.io.ply import read_gaussian_ply
 
     try:
         g = read_gaussian_ply(args.ply)
@@ -199,7 +199,7 @@ def cmd_sfm(args) -> int:
     image_dir = scene / "images"
     model_dir = scene / "sparse" / "0"
     try:
-        from .core.sfm import SfmOptions, list_images, reconstruct
+        from .core.io.sfm import SfmOptions, list_images, reconstruct
 
         names = list_images(args.photo_dir)
         if model_dir.exists() and not args.overwrite:

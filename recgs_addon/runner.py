@@ -144,11 +144,14 @@ def run_train(args) -> int:
 
     allocator = tune_allocator()
 
-    from .core.checkpoint import load_checkpoint, save_checkpoint
-    from .core.ply import read_gaussian_ply, write_gaussian_ply
-    from .core.outputs import write_outputs
-    from .core.report import write_run_report
-    from .core.train import TrainConfig, default_gt_dir, make_trainer, preset
+    from .core.caustics.build import make_method
+    from .core.caustics.config import CausticConfig
+    from .core.io.ply import read_gaussian_ply, write_gaussian_ply
+    from .core.outputs.exports import write_outputs
+    from .core.outputs.report import write_run_report
+    from .core.train.checkpoint import load_checkpoint, save_checkpoint
+    from .core.train.config import TrainConfig, preset
+    from .core.train.data import default_gt_dir
 
     torch.set_num_threads(max(1, torch.get_num_threads()))
     out: Path = args.out
@@ -159,6 +162,7 @@ def run_train(args) -> int:
         if args.resume:
             state = load_checkpoint(ckpt_path)
             cfg = TrainConfig.from_dict(state["config"])
+            ccfg = CausticConfig.from_dict(state.get("caustic_config", state["config"]))
             if args.max_minutes is not None:
                 cfg.max_minutes = args.max_minutes
             if args.iterations is not None:
@@ -167,16 +171,18 @@ def run_train(args) -> int:
             cfg = preset(args.preset, iterations=args.iterations, max_minutes=args.max_minutes,
                          downscale=args.downscale, sh_degree=args.sh_degree, seed=args.seed,
                          device=args.device, holdout_every=args.holdout_every,
-                         budget=_parse_budget(args.budget), compiled=False if args.eager else None,
-                         mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
-                         caustic_k=args.caustic_k, caustic_model=args.caustic_model,
-                         warmup=args.warmup, recurrence_steps=args.recurrence_steps,
-                         max_recurrences=args.max_recurrences, recurrence_tol=args.recurrence_tol)
+                         budget=_parse_budget(args.budget), compiled=False if args.eager else None)
+            caustic = dict(mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
+                           caustic_k=args.caustic_k, caustic_model=args.caustic_model, warmup=args.warmup,
+                           recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,
+                           recurrence_tol=args.recurrence_tol)
+            ccfg = CausticConfig(**{k: v for k, v in caustic.items() if v is not None})
         init = read_gaussian_ply(args.init_ply) if args.init_ply and not args.resume else None
         gt = args.gt_images if args.gt_images is not None else default_gt_dir(args.scene_dir)
-        trainer = make_trainer(args.scene_dir, cfg, images=args.images, gaussians=init, gt_images=gt)
+        method = make_method(args.scene_dir, cfg, ccfg, images=args.images, gaussians=init, gt_images=gt)
+        trainer = method.trainer
         if state is not None:
-            trainer.load_state_dict(state)
+            method.load_state_dict(state)
     except RecGSError as exc:
         _emit("error", message=str(exc))
         print(f"error: {exc}", file=sys.stderr)
@@ -191,13 +197,13 @@ def run_train(args) -> int:
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
 
     def checkpoint(tr) -> None:
-        save_checkpoint(ckpt_path, tr.state_dict())
+        save_checkpoint(ckpt_path, method.state_dict())
         write_gaussian_ply(out / "point_cloud.ply", tr.gaussians())
         _emit("checkpoint", path=str(ckpt_path), ply=str(out / "point_cloud.ply"), iteration=tr.step,
               gaussians=int(tr.params["means"].shape[0]))
 
     def on_progress(p) -> None:
-        d = {k: _finite(v) for k, v in asdict(p).items()}
+        d = {k: _finite(v) for k, v in {**asdict(p), **p.extra}.items() if k != "extra"}
         _emit("progress", **d)
         msg = (f"[{p.phase}] it {p.iteration} loss {p.loss:.4f} gaussians {p.gaussians} "
                f"sh {p.sh_degree} {p.elapsed:.0f}s")
@@ -209,9 +215,9 @@ def run_train(args) -> int:
 
     _emit("start", scene=str(args.scene_dir), out=str(out), resumed=bool(state), iteration=trainer.step,
           train_views=len(trainer.data.train_ids), test_views=len(trainer.data.test_ids),
-          gaussians=int(trainer.params["means"].shape[0]), allocator=allocator, config=asdict(cfg))
+          gaussians=int(trainer.params["means"].shape[0]), allocator=allocator, config={**asdict(cfg), **asdict(ccfg)})
     try:
-        reason = trainer.run(on_progress=on_progress, should_stop=lambda: stop["signal"] is not None,
+        reason = method.run(on_progress=on_progress, should_stop=lambda: stop["signal"] is not None,
                              on_checkpoint=checkpoint, checkpoint_every_s=args.checkpoint_every)
     except Exception as exc:  # keep the last checkpoint; report the error as an event too
         _emit("error", message=f"training failed at iteration {trainer.step}: {exc!r}")
@@ -220,7 +226,7 @@ def run_train(args) -> int:
         for s, h in old.items():
             signal.signal(s, h)
     checkpoint(trainer)
-    outputs = write_outputs(trainer, out)
+    outputs = write_outputs(method, out)
     if reason == "stopped":
         _emit("done", status="cancelled", reason=f"received {stop['signal']}", iteration=trainer.step,
               checkpoint=str(ckpt_path))
@@ -233,14 +239,13 @@ def run_train(args) -> int:
         "sh_degree": trainer.sh_degree, "test_views": [trainer.data.scene.cameras[i].name for i in trainer.data.test_ids],
         "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
         "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"), **outputs,
-        "history": trainer.history, "recurrences": getattr(trainer, "rec_history", []),
-        "caustics_dropped": getattr(trainer, "drop_reason", None),
-        "psnr_heldout_plain": (getattr(trainer, "plain", None) or {}).get("score"), "config": asdict(trainer.cfg),
+        "history": trainer.history, "recurrences": [], **method.summary(),
+        "config": {**asdict(trainer.cfg), **asdict(ccfg)},
     }
     tmp = out / ".metrics.json.tmp"
     tmp.write_text(json.dumps(_finite_tree(metrics), indent=2, allow_nan=False, default=_json_default))
     tmp.replace(out / "metrics.json")
-    report = write_run_report(out, metrics, trainer)
+    report = write_run_report(out, metrics, method)
     _emit("done", report=str(report),
           **{k: v for k, v in metrics.items() if k not in ("history", "config", "recurrences")})
     return 0
@@ -259,12 +264,12 @@ def add_render_arguments(p) -> None:
 def run_render(args) -> int:
     import torch
 
-    from .core.colmap import load_scene
-    from .core.images import write_image
-    from .core.losses import psnr
-    from .core.ply import read_gaussian_ply
-    from .core.rasterizer import render
-    from .core.train import resolve_image_dir
+    from .core.io.colmap import load_scene
+    from .core.io.images import write_image
+    from .core.train.losses import psnr
+    from .core.io.ply import read_gaussian_ply
+    from .core.render.rasterizer import render
+    from .core.train.data import resolve_image_dir
 
     try:
         g = read_gaussian_ply(args.model)

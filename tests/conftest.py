@@ -40,7 +40,7 @@ def write_colmap_scene(root, *, model="PINHOLE", params=None, width=64, height=4
     """
     import pycolmap
 
-    from recgs_addon.core.images import write_image
+    from recgs_addon.core.io.images import write_image
 
     rng = np.random.default_rng(seed)
     root = Path(root)
@@ -121,9 +121,9 @@ def write_rendered_scene(root, *, n_views=8, width=48, height=36, n_gauss=300, s
     import pycolmap
     import torch
 
-    from recgs_addon.core.gaussians import GaussianSet, logit, rgb_to_sh_dc
-    from recgs_addon.core.images import write_image
-    from recgs_addon.core.rasterizer import render
+    from recgs_addon.core.model.gaussians import GaussianSet, logit, rgb_to_sh_dc
+    from recgs_addon.core.io.images import write_image
+    from recgs_addon.core.render.rasterizer import render
 
     rng = np.random.default_rng(seed)
     root = Path(root)

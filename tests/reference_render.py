@@ -59,7 +59,7 @@ def quat_to_rot(q):
 
 def reference_render(means, log_scales, quats, logit_opacities, sh, viewmat, K, width, height,
                      sh_degree=None, background=None, antialiased=False, near=0.2):
-    """Plain float64 render. Arguments as ``recgs_addon.core.rasterizer.render`` (numpy arrays).
+    """Plain float64 render. Arguments as ``recgs_addon.core.render.rasterizer.render`` (numpy arrays).
 
     Returns dict(rgb (H, W, 3), alpha (H, W), depth (H, W), radii (N,), means2d (N, 2),
     margins dict(name -> smallest relative distance of any sample to that threshold),

@@ -61,7 +61,7 @@ def test_import_colmap_builds_collection(colmap_scene, bpy_session):
 
 
 def test_ply_object_ply_bit_identical(tmp_path, bpy_session):
-    from recgs_addon.core.ply import write_gaussian_ply
+    from recgs_addon.core.io.ply import write_gaussian_ply
 
     src = tmp_path / "in.ply"
     write_gaussian_ply(src, random_gaussians(n=300, degree=3))
@@ -72,7 +72,7 @@ def test_ply_object_ply_bit_identical(tmp_path, bpy_session):
 
 def test_export_opens_in_blenders_own_ply_reader(tmp_path, bpy_session):
     """Blender's native importer (an independent reader) finds every property by its INRIA name."""
-    from recgs_addon.core.ply import gaussians_to_records, write_gaussian_ply
+    from recgs_addon.core.io.ply import gaussians_to_records, write_gaussian_ply
 
     g = random_gaussians(n=40, degree=1)
     src = tmp_path / "in.ply"
@@ -98,7 +98,7 @@ def test_edits_are_honoured_by_export(tmp_path, bpy_session):
     """Deleting vertices (as in Edit Mode) removes exactly those Gaussians, values unchanged."""
     import bmesh
 
-    from recgs_addon.core.ply import read_gaussian_ply, write_gaussian_ply
+    from recgs_addon.core.io.ply import read_gaussian_ply, write_gaussian_ply
 
     g = random_gaussians(n=100, degree=2)
     write_gaussian_ply(tmp_path / "in.ply", g)
@@ -119,8 +119,8 @@ def test_export_bakes_similarity_transform(tmp_path, bpy_session):
     """Exported moved/rotated/scaled Gaussians render like the unmoved ones from the moved camera."""
     from mathutils import Euler, Matrix
 
-    from recgs_addon.core.gaussians import GaussianSet
-    from recgs_addon.core.ply import read_gaussian_ply, write_gaussian_ply
+    from recgs_addon.core.model.gaussians import GaussianSet
+    from recgs_addon.core.io.ply import read_gaussian_ply, write_gaussian_ply
     from reference_render import reference_render
 
     rng = np.random.default_rng(4)
@@ -154,7 +154,7 @@ def test_export_bakes_similarity_transform(tmp_path, bpy_session):
 
 
 def test_export_refuses_non_uniform_scale(tmp_path, bpy_session):
-    from recgs_addon.core.ply import write_gaussian_ply
+    from recgs_addon.core.io.ply import write_gaussian_ply
 
     write_gaussian_ply(tmp_path / "in.ply", random_gaussians(n=10, degree=1))
     bpy.ops.recgs.import_ply(filepath=str(tmp_path / "in.ply"))
@@ -175,7 +175,7 @@ def _garble(path):
 
 
 def _resize_image(path):
-    from recgs_addon.core.images import write_image
+    from recgs_addon.core.io.images import write_image
 
     write_image(path, np.zeros((40, 50, 3), np.float32))
 
@@ -241,7 +241,7 @@ def test_bad_ply_reports_and_leaves_scene(tmp_path, bpy_session):
 
 
 def test_ply_with_nan_rows_warns_and_imports_rest(tmp_path, bpy_session):
-    from recgs_addon.core.ply import write_gaussian_ply
+    from recgs_addon.core.io.ply import write_gaussian_ply
 
     g = random_gaussians(n=10, degree=0)
     g.log_scales[3, 1] = np.nan
@@ -257,8 +257,8 @@ def test_import_colmap_without_folder_reports(bpy_session):
 
 def test_os_errors_are_reported_not_raised(tmp_path, bpy_session, monkeypatch):
     """A file-system failure inside the core (here: a PLY that cannot be opened) is a report."""
-    from recgs_addon.core import ply as plymod
-    from recgs_addon.core.ply import write_gaussian_ply
+    from recgs_addon.core.io import ply as plymod
+    from recgs_addon.core.io.ply import write_gaussian_ply
 
     write_gaussian_ply(tmp_path / "g.ply", random_gaussians(n=5, degree=0))
 

@@ -10,11 +10,14 @@ import pytest
 import torch
 
 from conftest import ROOT, write_rendered_scene
-from recgs_addon.core import caustics
+from recgs_addon.core.caustics import fft_filter as caustics
+from recgs_addon.core.caustics.baselines import CausticFields
+from recgs_addon.core.caustics.build import make_method
+from recgs_addon.core.caustics.config import CausticConfig
 from recgs_addon.core.errors import RecGSError
-from recgs_addon.core.images import read_image, write_image
-from recgs_addon.core.losses import psnr
-from recgs_addon.core.train import TrainConfig, make_trainer, preset
+from recgs_addon.core.io.images import read_image, write_image
+from recgs_addon.core.train.losses import psnr
+from recgs_addon.core.train.config import preset
 
 
 def wave(h, w, fy, fx, phase=0.0, c=3):
@@ -111,7 +114,7 @@ def test_choose_k_follows_the_residual_spectrum():
 
 
 def test_caustic_fields_are_the_fourier_basis_and_differentiable():
-    fields = caustics.CausticFields(2, 5)
+    fields = CausticFields(2, 5)
     with torch.no_grad():
         fields.coef[1, 0, 2 + 1, 2 - 2, 0] = 0.3  # frequency (fy=1, fx=-2), real amplitude, channel 0
     f = fields.field(1, 12, 16)
@@ -130,7 +133,7 @@ def _caustic_field(h, w, i):
 @pytest.fixture(scope="module")
 def caustic_scene(tmp_path_factory):
     """Captured images = clean renders + a per-view low-frequency caustic field; clean/ is GT."""
-    from recgs_addon.core.ply import write_gaussian_ply
+    from recgs_addon.core.io.ply import write_gaussian_ply
 
     root = tmp_path_factory.mktemp("caustic") / "scene"
     gt = write_rendered_scene(root, n_views=10, width=48, height=36, n_gauss=300)
@@ -151,22 +154,28 @@ def clean_scene(tmp_path_factory):
 
 
 def rec_cfg(**kw):
+    """(trainer settings, caustic settings) of the tests' RecGS runs, with overrides ``kw``."""
     base = dict(iterations=2000, eval_every=50, log_every=50, holdout_every=5, compiled=False, mode="recgs",
                 densify_from=50, densify_every=50, densify_until=400, pyramid=(), warmup=400,
                 recurrence_steps=60, max_recurrences=15, caustic_k=5)
     base.update(kw)
-    return preset("default", **base)
+    caustic = {k: base.pop(k) for k in list(base) if k in CausticConfig.__dataclass_fields__}
+    return preset("default", **base), CausticConfig(**caustic)
+
+
+def make(scene, gt_images="clean", **kw):
+    return make_method(scene, *rec_cfg(**kw), gt_images=gt_images)
 
 
 def test_recurrence_converges_stops_and_removes_the_caustics(caustic_scene):
-    tr = make_trainer(caustic_scene, rec_cfg(), gt_images="clean")
+    tr = make(caustic_scene)
     reason = tr.run()
     assert "converged" in reason, reason
     assert 2 <= tr.recurrence < 15
     changes = [r["c_change"] for r in tr.rec_history]
-    assert changes[0] == 1.0 and changes[-1] < tr.cfg.recurrence_tol
+    assert changes[0] == 1.0 and changes[-1] < tr.ccfg.recurrence_tol
     ids = tr.data.train_ids
-    assert tr.cfg.caustic_dc is False  # the default: caustics move light, they add none
+    assert tr.ccfg.caustic_dc is False  # the default: caustics move light, they add none
     for i in ids:
         assert tr.maps[i].mean(dim=(0, 1)).abs().max() < 1e-6
     captured = np.mean([psnr(tr.data.view(i)[1], tr.data.gt_view(i)) for i in ids])
@@ -184,12 +193,12 @@ def test_dc_free_estimate_ignores_a_brightness_error_of_the_model(caustic_scene)
     """A model that renders every view 5 % too dark: with the DC term C takes that error in
     as caustic light (and the targets keep it); without, only the error's non-constant low
     frequencies remain in C."""
-    tr = make_trainer(caustic_scene, rec_cfg(), gt_images="clean")
+    tr = make(caustic_scene)
     i = tr.data.train_ids[0]
     clean = tr.data.gt_view(i).double()
     field = _caustic_field(36, 48, i).double()
     free = tr._estimate(clean + field, 0.95 * clean, 9)
-    tr.cfg.caustic_dc = True
+    tr.ccfg.caustic_dc = True
     kept = tr._estimate(clean + field, 0.95 * clean, 9)
     bias = caustics.lowpass(0.05 * clean, 9)
     assert torch.allclose(kept, field + bias, atol=1e-6)
@@ -200,50 +209,49 @@ def test_dc_free_estimate_ignores_a_brightness_error_of_the_model(caustic_scene)
 
 
 def test_no_caustics_stops_within_three_rounds(clean_scene):
-    tr = make_trainer(clean_scene, rec_cfg(), gt_images="clean")
+    tr = make(clean_scene)
     reason = tr.run()
     assert tr.recurrence <= 3, (reason, tr.rec_history)
     # C held only model error: it was dropped (or never mattered) and the run ended as plain 3DGS
     assert tr.dropped or "converged" in reason, (reason, tr.rec_history)
     if tr.dropped:
-        assert tr.stage == "settle" and not tr.maps and not tr.data.targets
+        assert tr.stage == "settle" and not tr.maps and not tr.targets.images
 
 
 def test_a_caustic_estimate_that_hurts_held_out_views_is_dropped(caustic_scene):
     """Rounds that score worse than the plain model on held-out views: after
     ``recurrence_patience`` of them the plain model comes back, C is dropped, and it trains on."""
-    tr = make_trainer(caustic_scene, rec_cfg(iterations=700, max_recurrences=40, recurrence_tol=0.0,
-                                             stall_ratio=10.0), gt_images="clean")
+    tr = make(caustic_scene, iterations=700, max_recurrences=40, recurrence_tol=0.0, stall_ratio=10.0)
     tr.run(should_stop=lambda: tr.stage == "recurrence" and tr.recurrence == 2)
-    plain = {n: v.detach().clone() for n, v in tr.params.items()}
-    tr._snapshot(tr.heldout_score() + 100.0)  # pretend the plain model is far better
+    plain = {n: v.detach().clone() for n, v in tr.trainer.params.items()}
+    tr._snapshot(tr.trainer.heldout_psnr() + 100.0)  # pretend the plain model is far better
     at_drop = {}
     drop = tr._drop
 
     def spy(why):
         drop(why)
-        at_drop.update({n: v.detach().clone() for n, v in tr.params.items()}, maps=dict(tr.maps),
-                       targets=dict(tr.data.targets))
+        at_drop.update({n: v.detach().clone() for n, v in tr.trainer.params.items()}, maps=dict(tr.maps),
+                       targets=dict(tr.targets.images))
 
     tr._drop = spy
     tr.run(should_stop=lambda: tr.stage == "settle")
     assert tr.dropped and "hurt held-out views" in tr.drop_reason, tr.drop_reason
-    assert tr.recurrence == 2 + tr.cfg.recurrence_patience - 1  # the last round is judged, then undone
+    assert tr.recurrence == 2 + tr.ccfg.recurrence_patience - 1  # the last round is judged, then undone
     for n in plain:
         assert torch.equal(at_drop[n], plain[n]), n
     assert not at_drop["maps"] and not at_drop["targets"]
     tr.run()
-    assert tr.step == 700 and tr.recurrence == 3  # trained on as plain 3DGS
+    assert tr.trainer.step == 700 and tr.recurrence == 3  # trained on as plain 3DGS
 
 
 def test_checkpoint_from_before_the_do_no_harm_tests_loads(caustic_scene):
     cfg = rec_cfg(iterations=460, warmup=400, recurrence_steps=60)
-    a = make_trainer(caustic_scene, cfg, gt_images="clean")
+    a = make_method(caustic_scene, *cfg, gt_images="clean")
     a.run()
     state = a.state_dict()
     for key in ("plain", "misses", "drop_reason"):
         del state["caustic"][key]
-    b = make_trainer(caustic_scene, cfg, gt_images="clean")
+    b = make_method(caustic_scene, *cfg, gt_images="clean")
     b.load_state_dict(state)
     assert b.plain is None and b.misses == 0 and not b.dropped and b.recurrence == a.recurrence
 
@@ -251,35 +259,34 @@ def test_checkpoint_from_before_the_do_no_harm_tests_loads(caustic_scene):
 def test_config_of_an_older_checkpoint_keeps_the_dc_term():
     """A checkpoint saved before ``caustic_dc`` existed resumes with the DC term it was made
     with; a new one round-trips (through JSON, as the job's metrics hold it) unchanged."""
-    cfg = rec_cfg()
-    old = asdict(cfg)
+    train_cfg, cfg = rec_cfg()
+    old = {**asdict(train_cfg), **asdict(cfg)}   # checkpoints before the split kept one dict
     del old["caustic_dc"]
-    assert cfg.caustic_dc is False and TrainConfig.from_dict(old).caustic_dc is True
-    assert TrainConfig.from_dict(json.loads(json.dumps(asdict(cfg)))) == cfg
+    assert cfg.caustic_dc is False and CausticConfig.from_dict(old).caustic_dc is True
+    assert CausticConfig.from_dict(json.loads(json.dumps(asdict(cfg)))) == cfg
+    assert CausticConfig.from_dict(old) == CausticConfig(**{**asdict(cfg), "caustic_dc": True})
 
 
 def test_resume_in_the_middle_of_a_recurrence_continues_it(caustic_scene):
-    cfg = rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40, recurrence_tol=0.0)
-    a = make_trainer(caustic_scene, cfg, gt_images="clean")
-    assert a.run(should_stop=lambda: a.step >= 430) == "stopped"  # inside the first recurrence (400..460)
+    kw = dict(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40, recurrence_tol=0.0)
+    a = make(caustic_scene, **kw)
+    assert a.run(should_stop=lambda: a.trainer.step >= 430) == "stopped"  # inside the first recurrence (400..460)
     assert a.stage == "recurrence" and a.recurrence == 1 and a.next_due == 460
     state = a.state_dict()
-    b = make_trainer(caustic_scene, rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40, recurrence_tol=0.0),
-                     gt_images="clean")
+    b = make(caustic_scene, **kw)
     b.load_state_dict(state)
     b.run()
-    ref = make_trainer(caustic_scene, rec_cfg(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40, recurrence_tol=0.0),
-                       gt_images="clean")
+    ref = make(caustic_scene, **kw)
     ref.run()
     assert b.recurrence == ref.recurrence == 3
-    for n in ref.params:
-        assert torch.equal(b.params[n], ref.params[n]), n
+    for n in ref.trainer.params:
+        assert torch.equal(b.trainer.params[n], ref.trainer.params[n]), n
     assert [r["c_change"] for r in b.rec_history] == [r["c_change"] for r in ref.rec_history]
 
 
 @pytest.mark.parametrize("mode", ["filter2d", "joint"])
 def test_baselines_train_and_estimate(caustic_scene, mode):
-    tr = make_trainer(caustic_scene, rec_cfg(mode=mode, iterations=300), gt_images="clean")
+    tr = make(caustic_scene, mode=mode, iterations=300)
     tr.run()
     ids = tr.data.train_ids
     free = [tr.decaustic_image(i) for i in ids]
@@ -296,13 +303,13 @@ def test_baselines_train_and_estimate(caustic_scene, mode):
 
 def test_bad_caustic_settings_refused(caustic_scene, tmp_path):
     with pytest.raises(RecGSError, match="odd"):
-        make_trainer(caustic_scene, rec_cfg(caustic_k=4))
+        make(caustic_scene, gt_images=None, caustic_k=4)
     with pytest.raises(RecGSError, match="caustic model"):
-        make_trainer(caustic_scene, rec_cfg(caustic_model="square"))
+        make(caustic_scene, gt_images=None, caustic_model="square")
     bare = tmp_path / "bare"
     shutil.copytree(caustic_scene, bare, ignore=shutil.ignore_patterns("clean"))
     with pytest.raises(RecGSError, match="clean"):
-        make_trainer(bare, rec_cfg(mode="oracle"))
+        make(bare, gt_images=None, mode="oracle")
 
 
 def test_recgs_job_writes_caustic_outputs_and_report(caustic_scene, tmp_path):
@@ -335,7 +342,7 @@ def test_recgs_job_writes_caustic_outputs_and_report(caustic_scene, tmp_path):
 
 
 def test_benchmark_report_table_plots_and_gap(tmp_path):
-    from recgs_addon.core.report import write_benchmark_report
+    from recgs_addon.core.outputs.report import write_benchmark_report
 
     def run(final, times_psnr):
         hist = [{"elapsed": t, "psnr_gt": v, "ssim_gt": v / 40} for t, v in times_psnr]

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from conftest import write_colmap_scene
-from recgs_addon.core.colmap import load_scene
+from recgs_addon.core.io.colmap import load_scene
 from recgs_addon.core.errors import SceneError
-from recgs_addon.core.images import read_image
+from recgs_addon.core.io.images import read_image
 
 
 def _check_matches(scene, rec):
@@ -55,7 +55,7 @@ def test_distorted_models_are_undistorted_into_cache(tmp_path, model):
     img = scene.load_image(cam)
     assert img.shape == (cam.height, cam.width, 3)
     # the undistorted model's own points project where its observations are
-    from recgs_addon.core.colmap import read_reconstruction
+    from recgs_addon.core.io.colmap import read_reconstruction
 
     rec = read_reconstruction(scene.model_dir)
     errs = []
@@ -134,7 +134,7 @@ def test_unreadable_image(colmap_scene):
 
 
 def test_image_size_disagrees_with_camera(colmap_scene):
-    from recgs_addon.core.images import write_image
+    from recgs_addon.core.io.images import write_image
 
     root, _ = colmap_scene
     write_image(root / "images/img_003.png", np.zeros((40, 50, 3), np.float32))
@@ -173,7 +173,7 @@ def test_paths_with_spaces_and_non_ascii(tmp_path):
 def test_param_count_table_matches_pycolmap():
     import pycolmap
 
-    from recgs_addon.core.colmap import _MODEL_NUM_PARAMS
+    from recgs_addon.core.io.colmap import _MODEL_NUM_PARAMS
 
     for name, mid in pycolmap.CameraModelId.__members__.items():
         if name != "INVALID":
@@ -183,7 +183,7 @@ def test_param_count_table_matches_pycolmap():
 
 def test_opencv_binary_cameras_bin_passes_structural_check(tmp_path):
     write_colmap_scene(tmp_path / "s", model="OPENCV")
-    from recgs_addon.core.colmap import _check_cameras_bin
+    from recgs_addon.core.io.colmap import _check_cameras_bin
 
     _check_cameras_bin(tmp_path / "s/sparse/0/cameras.bin")
 

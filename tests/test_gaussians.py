@@ -1,6 +1,6 @@
 import numpy as np
 
-from recgs_addon.core.gaussians import (SH_C0, GaussianSet, init_from_points, knn_mean_distance,
+from recgs_addon.core.model.gaussians import (SH_C0, GaussianSet, init_from_points, knn_mean_distance,
                                         sigmoid, sh_dc_to_rgb)
 
 

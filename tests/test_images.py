@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from recgs_addon.core.errors import ImageError
-from recgs_addon.core.images import image_size, read_image, write_image
+from recgs_addon.core.io.images import image_size, read_image, write_image
 
 
 def _smooth(h=48, w=64):

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import torch
 
-from recgs_addon.core.losses import l1, psnr, ssim, training_loss
+from recgs_addon.core.train.losses import l1, psnr, ssim, training_loss
 
 
 def ssim_reference(a, b):

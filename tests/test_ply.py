@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from recgs_addon.core.errors import PlyError
-from recgs_addon.core.gaussians import GaussianSet
-from recgs_addon.core.ply import (gaussians_to_records, ply_property_names, read_gaussian_ply,
+from recgs_addon.core.model.gaussians import GaussianSet
+from recgs_addon.core.io.ply import (gaussians_to_records, ply_property_names, read_gaussian_ply,
                                   write_gaussian_ply)
 
 FIELDS = ("means", "log_scales", "quats", "logit_opacities", "sh")
@@ -144,7 +144,7 @@ def test_write_is_atomic(tmp_path, monkeypatch):
     g = random_gaussians(n=5, degree=0)
     write_gaussian_ply(tmp_path / "g.ply", g)
     before = (tmp_path / "g.ply").read_bytes()
-    import recgs_addon.core.ply as plymod
+    import recgs_addon.core.io.ply as plymod
 
     def failing_replace(src, dst):
         assert plymod.Path(src).stat().st_size > len(before)  # the new data was fully written

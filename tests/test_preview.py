@@ -136,7 +136,7 @@ def test_display_ratio_keeps_a_deterministic_fraction(session):
 
 def test_min_opacity_hides_transparent_gaussians(session):
     from recgs_addon.blender import preview
-    from recgs_addon.core.gaussians import sigmoid
+    from recgs_addon.core.model.gaussians import sigmoid
 
     g = random_gaussians(n=500, degree=0)
     obj = _gaussian_object(g)
@@ -148,8 +148,8 @@ def test_min_opacity_hides_transparent_gaussians(session):
 def test_modes_switch_and_attributes_match_numpy(session):
     """Instances carry T(mean) R S and the scene-linear DC colour; points carry the radius."""
     from recgs_addon.blender import preview
-    from recgs_addon.core.cameras import quat_to_rotmat
-    from recgs_addon.core.gaussians import SH_C0, sigmoid
+    from recgs_addon.core.model.cameras import quat_to_rotmat
+    from recgs_addon.core.model.gaussians import SH_C0, sigmoid
 
     g = random_gaussians(n=300, degree=2)
     g.quats[0] = 0.0  # a zero quaternion is the identity, as in the rasterizer
@@ -267,7 +267,7 @@ def _selected(obj):
 
 
 def _sizes_object():
-    from recgs_addon.core.gaussians import GaussianSet
+    from recgs_addon.core.model.gaussians import GaussianSet
 
     rng = np.random.default_rng(3)
     n = 1000
@@ -281,7 +281,7 @@ def _sizes_object():
 
 @pytest.mark.parametrize("edit_mode", [False, True], ids=["object", "edit"])
 def test_select_by_opacity(session, edit_mode):
-    from recgs_addon.core.gaussians import sigmoid
+    from recgs_addon.core.model.gaussians import sigmoid
 
     g, obj = _sizes_object()
     o = sigmoid(g.logit_opacities)
@@ -313,7 +313,7 @@ def test_select_by_size_uses_world_units(session):
 
 def test_select_cleanup_then_delete(session):
     from recgs_addon.blender import gaussian_object as gobj
-    from recgs_addon.core.gaussians import sigmoid
+    from recgs_addon.core.model.gaussians import sigmoid
 
     g, obj = _sizes_object()
     size = np.exp(g.log_scales.astype(np.float64)).max(1)
@@ -361,8 +361,8 @@ def test_draw_panel_runs(session):
 def _eevee_scene():
     """A few hundred Gaussians of varied colour, opacity, size and shape on a bumpy patch."""
     from conftest import look_at_pose
-    from recgs_addon.core.cameras import Camera
-    from recgs_addon.core.gaussians import GaussianSet, logit, rgb_to_sh_dc
+    from recgs_addon.core.model.cameras import Camera
+    from recgs_addon.core.model.gaussians import GaussianSet, logit, rgb_to_sh_dc
 
     rng = np.random.default_rng(0)
     n = 300
@@ -381,8 +381,8 @@ def test_eevee_render_matches_core_renderer(tmp_path, session, method, samples):
 
     from recgs_addon.blender import preview
     from recgs_addon.blender.cameras import apply_render_settings, create_camera_object
-    from recgs_addon.core.images import read_image, write_image
-    from recgs_addon.core.rasterizer import render
+    from recgs_addon.core.io.images import read_image, write_image
+    from recgs_addon.core.render.rasterizer import render
 
     g, cam = _eevee_scene()
     with torch.no_grad():

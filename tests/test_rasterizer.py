@@ -1,4 +1,4 @@
-"""Tests of recgs_addon.core.rasterizer against the dense float64 oracle (reference_render.py).
+"""Tests of recgs_addon.core.render.rasterizer against the dense float64 oracle (reference_render.py).
 
 Run: ``pytest tests/test_rasterizer.py -m "not slow"`` (~15-20 s on 2 cores, eager kernels
 only); ``-m slow`` adds the torch.compile checks (compiled vs eager, compiled hard cases; up to
@@ -24,9 +24,9 @@ sys.path.insert(0, ROOT)
 
 from reference_render import reference_render  # noqa: E402
 
-from recgs_addon.core import rasterizer  # noqa: E402
-from recgs_addon.core.cameras import quat_to_rotmat  # noqa: E402
-from recgs_addon.core.rasterizer import render  # noqa: E402
+from recgs_addon.core.render import rasterizer  # noqa: E402
+from recgs_addon.core.model.cameras import quat_to_rotmat  # noqa: E402
+from recgs_addon.core.render.rasterizer import render  # noqa: E402
 
 PARAM_NAMES = ("means", "log_scales", "quats", "logit_opacities", "sh")
 
@@ -181,7 +181,7 @@ def test_radii_and_culling_match_reference():
 def _precull_vs_exact(scene):
     """(float64 inputs, the exact cull rows over all Gaussians, drawn (N,), candidates (N,))
     for a 37x23 view of ``scene``."""
-    from recgs_addon.core import projection
+    from recgs_addon.core.render import projection
 
     f64 = torch.float64
     means, log_scales, quats, logits = (torch.tensor(x, dtype=f64) for x in scene["params"][:4])
@@ -197,7 +197,7 @@ def test_precull_never_drops_a_visible_gaussian(seed):
     pass over all Gaussians draws, and the radii, order and ellipses are unchanged, on scenes
     with scales over 5 decades, centres up to 4x outside the frustum, rims just off the image
     and opacities from invisible to opaque."""
-    from recgs_addon.core import projection
+    from recgs_addon.core.render import projection
 
     scene = make_scene(100 + seed, n=4000, width=37, height=23, deg=0, depth=(0.1, 30.0),
                        scale=(1e-4, 10.0), logit=(-2.0, 4.0), spread=4.0)
@@ -601,7 +601,7 @@ def test_compiled_path_survives_first_call_under_no_grad():
     import sys
 
     code = ("import warnings, torch\n"
-            "from recgs_addon.core import rasterizer as r\n"
+            "from recgs_addon.core.render import rasterizer as r\n"
             "warnings.filterwarnings('error', message='torch.compile unavailable')\n"
             "with torch.no_grad():\n"
             "    kern = r.get_kernels(None)\n"

@@ -12,10 +12,12 @@ import pytest
 import torch
 
 from conftest import ROOT, write_rendered_scene
-from recgs_addon.core import density
+from recgs_addon.core.train import density
 from recgs_addon.core.errors import RecGSError
-from recgs_addon.core.rowgrads import RowGrads
-from recgs_addon.core.train import holdout_split, make_trainer, preset
+from recgs_addon.core.render.rowgrads import RowGrads
+from recgs_addon.core.train.config import preset
+from recgs_addon.core.train.data import holdout_split
+from recgs_addon.core.train.trainer import make_trainer
 
 
 @pytest.fixture(scope="module")
@@ -290,7 +292,7 @@ def test_sigkill_then_resume_matches_uninterrupted(small_scene, tmp_path):
 def test_checkpoint_never_half_written(small_scene, tmp_path):
     """Kill the job at random moments while it checkpoints every step: the file under the
     final name always loads."""
-    from recgs_addon.core.checkpoint import load_checkpoint
+    from recgs_addon.core.train.checkpoint import load_checkpoint
 
     out = tmp_path / "o"
     rng = np.random.default_rng(1)
@@ -324,17 +326,17 @@ def test_sigterm_checkpoints_and_exits_cleanly(small_scene, tmp_path):
     assert proc.wait(timeout=120) == 0
     done = [json.loads(x) for x in rest.splitlines() if x.strip()][-1]
     assert done["event"] == "done" and done["status"] == "cancelled"
-    from recgs_addon.core.checkpoint import load_checkpoint
-    from recgs_addon.core.ply import read_gaussian_ply
+    from recgs_addon.core.train.checkpoint import load_checkpoint
+    from recgs_addon.core.io.ply import read_gaussian_ply
 
     assert load_checkpoint(out / "checkpoint.pt")["step"] == done["iteration"]
     assert len(read_gaussian_ply(out / "point_cloud.ply")) > 0
 
 
 def test_render_command(small_scene, tmp_path):
-    from recgs_addon.core.gaussians import init_from_points
-    from recgs_addon.core.colmap import load_scene
-    from recgs_addon.core.ply import write_gaussian_ply
+    from recgs_addon.core.model.gaussians import init_from_points
+    from recgs_addon.core.io.colmap import load_scene
+    from recgs_addon.core.io.ply import write_gaussian_ply
 
     sc = load_scene(small_scene)
     write_gaussian_ply(tmp_path / "m.ply", init_from_points(sc.points, sc.colors))
@@ -367,10 +369,10 @@ def test_long_run_stays_finite():
         return step_fn(*a, **k)
 
     tr.optimizer.step = checked_step
-    orig_after = tr._after_step
+    orig_step = tr.train_step
 
     def after():
-        orig_after()
+        loss = orig_step()
         if tr.step % 25 == 0:
             for name, p in tr.params.items():
                 if not torch.isfinite(p).all():
@@ -379,7 +381,8 @@ def test_long_run_stays_finite():
                 for key in ("exp_avg", "exp_avg_sq"):
                     if key in st and not torch.isfinite(st[key]).all():
                         bad.append(("adam", key, tr.step))
-    tr._after_step = after
+        return loss
+    tr.train_step = after
     tr.run()
     assert tr.step == steps
     assert not bad, bad[:5]

@@ -76,8 +76,8 @@ def _object_gaussians(name, world=False):
 
 def test_train_cancel_resume(session):
     from recgs_addon.blender import jobs
-    from recgs_addon.core.checkpoint import load_checkpoint
-    from recgs_addon.core.ply import read_gaussian_ply
+    from recgs_addon.core.train.checkpoint import load_checkpoint
+    from recgs_addon.core.io.ply import read_gaussian_ply
 
     scene, name, out = session
     s = scene.recgs
@@ -108,7 +108,7 @@ def test_edited_object_is_what_resume_trains(session, tmp_path):
     the rest, and Resume starts a fresh job from them (world space, --init-ply)."""
     import bmesh
 
-    from recgs_addon.core.ply import read_gaussian_ply
+    from recgs_addon.core.io.ply import read_gaussian_ply
 
     scene, name, out = session
     s = scene.recgs
@@ -165,7 +165,7 @@ def test_caustic_mode_outputs(session, tmp_path):
 
 def test_operator_errors_report_instead_of_raising(session, tmp_path, monkeypatch):
     from recgs_addon.blender import jobs
-    from recgs_addon.core.ply import write_gaussian_ply
+    from recgs_addon.core.io.ply import write_gaussian_ply
     from test_ply import random_gaussians
 
     scene, name, out = session
@@ -326,7 +326,7 @@ sys.path.insert(0, {str(ROOT)!r})
 import bpy
 from recgs_addon import blender as addon
 from recgs_addon.blender.gaussian_object import gaussians_from_object, is_gaussian_object
-from recgs_addon.core.ply import read_gaussian_ply
+from recgs_addon.core.io.ply import read_gaussian_ply
 addon.register()
 bpy.ops.wm.open_mainfile(filepath={str(out / 'scene.blend')!r})
 objs = [o for o in bpy.data.objects if is_gaussian_object(o)]

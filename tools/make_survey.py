@@ -56,7 +56,7 @@ images fail, as it does on real data with strong caustics.
 
 Conventions: world frame is Blender's world frame (metres, z up). Poses are COLMAP
 world-to-camera ``(R, t)``; the Blender camera matrix is built with
-:func:`recgs_addon.core.cameras.blender_matrix_from_pose`. Intrinsics are PINHOLE with
+:func:`recgs_addon.core.model.cameras.blender_matrix_from_pose`. Intrinsics are PINHOLE with
 ``fx == fy`` and the principal point at exactly ``(width / 2, height / 2)`` (pixel centres at +0.5).
 Images are converted from Cycles' linear EXR output with the plain sRGB transfer curve (the
 "Standard" view transform) without dithering.
@@ -81,7 +81,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
-from recgs_addon.core.cameras import Camera, blender_matrix_from_pose, project_points  # noqa: E402
+from recgs_addon.core.model.cameras import Camera, blender_matrix_from_pose, project_points  # noqa: E402
 
 CAUSTIC_PATTERNS = ("refraction", "waves", "voronoi")
 
@@ -1055,11 +1055,11 @@ def reprojection_errors(rec) -> np.ndarray:
 
 
 def run_sfm(out: Path, true_rec, threads: int) -> dict:
-    """pycolmap SfM (``recgs_addon.core.sfm``) on images/ -> sfm/0; compare with the truth."""
+    """pycolmap SfM (``recgs_addon.core.io.sfm``) on images/ -> sfm/0; compare with the truth."""
     import pycolmap
 
     from recgs_addon.core.errors import SceneError
-    from recgs_addon.core.sfm import SfmOptions, reconstruct
+    from recgs_addon.core.io.sfm import SfmOptions, reconstruct
 
     t0 = time.time()
     shutil.rmtree(out / "sfm", ignore_errors=True)

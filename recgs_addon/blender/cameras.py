@@ -1,11 +1,11 @@
-"""Blender camera objects from core cameras (and back). The axis change lives in core.cameras."""
+"""Blender camera objects from core cameras (and back). The axis change lives in core.model.cameras."""
 from __future__ import annotations
 
 import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.cameras import Camera, blender_intrinsics, blender_matrix_from_pose
+from ..core.model.cameras import Camera, blender_intrinsics, blender_matrix_from_pose
 
 
 def create_camera_object(cam: Camera, collection) -> "bpy.types.Object":
@@ -48,7 +48,7 @@ def apply_render_settings(scene, cam_obj) -> None:
 
 def camera_from_object(cam_obj) -> Camera:
     """Core camera from a camera object created by :func:`create_camera_object` (follows moves)."""
-    from ..core.cameras import pose_from_blender_matrix
+    from ..core.model.cameras import pose_from_blender_matrix
 
     fx, fy, cx, cy = cam_obj.data["recgs_intrinsics"]
     w, h = cam_obj.data["recgs_resolution"]

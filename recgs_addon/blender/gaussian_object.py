@@ -13,9 +13,9 @@ from contextlib import contextmanager
 import bpy
 import numpy as np
 
-from ..core.gaussians import GaussianSet, num_sh_coeffs
-from ..core.ply import gaussians_to_records, ply_property_names
-from ..core.transform import transform_gaussians
+from ..core.model.gaussians import GaussianSet, num_sh_coeffs
+from ..core.io.ply import gaussians_to_records, ply_property_names
+from ..core.io.transform import transform_gaussians
 
 #: Custom property marking an object as a Gaussian object.
 FLAG = "recgs_gaussians"
@@ -58,7 +58,7 @@ def write_mesh(mesh, g: GaussianSet) -> None:
 
 def read_mesh(mesh) -> GaussianSet:
     """The Gaussian set stored on a mesh (object space)."""
-    from ..core.ply import records_to_gaussians
+    from ..core.io.ply import records_to_gaussians
 
     n = len(mesh.vertices)
     degree = sh_degree_of(mesh)

@@ -77,8 +77,8 @@ def import_survey(scene, view_layer, scene_dir, images: str = "images", sh_degre
     """Import a COLMAP survey into ``scene``: a collection with one camera per image and the
     Gaussian object, made active. Returns ``(object, message)``. Raises RecGSError, OSError
     or ImportError before anything is created."""
-    from ..core.colmap import load_scene
-    from ..core.gaussians import init_from_points
+    from ..core.io.colmap import load_scene
+    from ..core.model.gaussians import init_from_points
 
     t0 = time.perf_counter()
     scene_dir = Path(scene_dir)
@@ -132,7 +132,7 @@ class RECGS_OT_import_ply(bpy.types.Operator, ImportHelper):
     filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
 
     def execute(self, context):
-        from ..core.ply import read_gaussian_ply
+        from ..core.io.ply import read_gaussian_ply
 
         path = Path(bpy.path.abspath(self.filepath))
         try:
@@ -168,7 +168,7 @@ class RECGS_OT_export_ply(bpy.types.Operator, ExportHelper):
                                               "scale into the Gaussians (SH rotated too)")
 
     def execute(self, context):
-        from ..core.ply import write_gaussian_ply
+        from ..core.io.ply import write_gaussian_ply
 
         obj = context.active_object
         if obj is None or not gobj.is_gaussian_object(obj):

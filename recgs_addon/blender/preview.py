@@ -49,7 +49,7 @@ SPLAT_MATERIAL = "RecGS Splat"
 POINT_MATERIAL = "RecGS Point"
 #: Bumped whenever the node group or a material changes; older ones are rebuilt in place.
 VERSION = 1
-#: Degree-0 SH constant (core.gaussians.SH_C0), written into the nodes.
+#: Degree-0 SH constant (core.model.gaussians.SH_C0), written into the nodes.
 SH_C0 = 0.28209479177387814
 #: Default half-size of the instanced ellipsoid in standard deviations. The Gaussian is cut at
 #: exp(-2.5^2 / 2) = 4.4 % of its peak. Measured against the trainer's render (docs/preview.md):

@@ -11,7 +11,7 @@ import bpy
 import numpy as np
 from bpy.props import EnumProperty, FloatProperty
 
-from ..core.gaussians import sigmoid
+from ..core.model.gaussians import sigmoid
 from . import gaussian_object as gobj
 
 ACTIONS = (("SET", "Set", "Replace the selection"),

@@ -150,7 +150,7 @@ def start_training(scene, obj, resume: bool = False, echo_stderr: bool = False, 
                 raise WorkflowError(f"{obj.name}: no Gaussians left to train")
             init_ply = out / "edited_init.ply"
             bake_world(obj, g)
-            from ..core.ply import write_gaussian_ply
+            from ..core.io.ply import write_gaussian_ply
 
             write_gaussian_ply(init_ply, g)
             how = f"from the edited object's {len(g)} Gaussians (fresh optimiser)"
@@ -168,7 +168,7 @@ def start_training(scene, obj, resume: bool = False, echo_stderr: bool = False, 
 def object_edited(obj, out: Path):
     """``(edited, world-space Gaussians)``: edited unless the object's Gaussians equal the last
     checkpoint's PLY or what the last live update wrote into it (count and array hash)."""
-    from ..core.ply import read_gaussian_ply
+    from ..core.io.ply import read_gaussian_ply
 
     with gobj.edits_flushed(obj):
         g = gobj.gaussians_from_object(obj, world=True)
@@ -324,7 +324,7 @@ def _apply(a: ActiveJob, s, ev: dict) -> None:
 def live_update(obj, ply) -> str:
     """Replace the object's Gaussians with the PLY's (object transform kept). Returns a note
     ("" when updated)."""
-    from ..core.ply import read_gaussian_ply
+    from ..core.io.ply import read_gaussian_ply
 
     if obj.mode == "EDIT":
         return f"{obj.name} is in Edit Mode: viewport not updated (the job goes on)"

@@ -17,7 +17,7 @@ def _f(v, digits=2) -> str:
     return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
 
-def write_run_report(out: Path, metrics: dict, trainer=None, examples: int = 3) -> Path:
+def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -> Path:
     """``OUT/report.md`` with PNGs under ``OUT/report/``: held-out PSNR against time, the change
     of C per recurrence, triptychs (captured / caustic-free / ground truth) and caustic maps."""
     out = Path(out)
@@ -54,14 +54,14 @@ def write_run_report(out: Path, metrics: dict, trainer=None, examples: int = 3) 
                   "after its steps (dB) |", "|---|---|---|---|---|---|"]
         lines += [f"| {r['recurrence']} | {r['iteration']} | {r['elapsed']} | {r['c_change']:.4f} | "
                   f"{r['mean_abs_c']:.4f} | {_f(r.get('psnr_heldout'))} |" for r in rec]
-    if trainer is not None and hasattr(trainer, "decaustic_image"):
-        data = trainer.data
+    data = None if method is None else method.data
+    if data is not None and data.train_ids and method.decaustic_image(data.train_ids[0]) is not None:
         ids = data.train_ids[:: max(1, len(data.train_ids) // examples)][:examples]
         lines += ["", "## Examples (training views)", ""]
         for i in ids:
             name = Path(data.scene.cameras[i].name).stem
             image = data.view(i, 1)[1].cpu().numpy()
-            free = trainer.decaustic_image(i).cpu().numpy()
+            free = method.decaustic_image(i).cpu().numpy()
             gt = data.gt_view(i)
             ims, labels = [image, free], ["captured", "caustic-free"]
             if gt is not None:

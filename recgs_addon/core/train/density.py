@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import torch
 
-from .gaussians import logit
-from .projection import quat_to_rotmat
+from ..model.gaussians import logit
+from ..render.projection import quat_to_rotmat
 
 #: Opacity below which a Gaussian is pruned (INRIA: 0.005).
 PRUNE_OPACITY = 0.005

@@ -4,7 +4,7 @@ Everything here is per Gaussian (no pixels), runs in float64 whatever the parame
 (the cost is small next to the per-pixel compositing, and it keeps the 2D covariance of a
 1e5:1 needle or a 1e3 m blob accurate), and is differentiated by torch autograd.
 
-Conventions are those of :mod:`recgs_addon.core.cameras`: ``viewmat`` is world-to-camera with
+Conventions are those of :mod:`recgs_addon.core.model.cameras`: ``viewmat`` is world-to-camera with
 OpenCV axes (x right, y down, z forward); pixel (i, j) is centred at (i + 0.5, j + 0.5) in the
 coordinates ``u = fx x / z + cx``.
 
@@ -260,7 +260,7 @@ def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, wid
         antialiased: multiply opacity by sqrt(det(cov2d) / det(cov2d + 0.3 I)).
         compiled: run the per-Gaussian maths through torch.compile (same results to ~1e-15).
         gather: ``gather(x, ids)`` reads the visible rows of each input for the differentiable
-            pass (default ``x.index_select(0, ids)``); see :mod:`recgs_addon.core.rowgrads`.
+            pass (default ``x.index_select(0, ids)``); see :mod:`recgs_addon.core.render.rowgrads`.
 
     Culling (radius 0): z <= near; opacity < 1/255; no pixel centre of the image within the
     opacity-aware radius ``ceil(sqrt(2 ln(255 o)) sqrt(lambda_max))``, beyond which

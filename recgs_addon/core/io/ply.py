@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import PlyError
-from .gaussians import GaussianSet, num_sh_coeffs, sh_degree_from_coeffs
+from ..errors import PlyError
+from ..model.gaussians import GaussianSet, num_sh_coeffs, sh_degree_from_coeffs
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Camera
-from .errors import ImageError, SceneError
+from ..model.cameras import Camera
+from ..errors import ImageError, SceneError
 from .images import image_size, read_image
 
 #: Camera models used as they are.

@@ -15,16 +15,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .images import write_image
-from .losses import psnr
+from ..io.images import write_image
+from ..train.losses import psnr
 
 
 def _stem(name: str) -> Path:
     return Path(name).with_suffix("")
 
 
-def write_outputs(trainer, out: Path) -> dict:
+def write_outputs(method, out: Path) -> dict:
+    """Write the files above for a training method (core/caustics/method.py); returns the scores."""
     out = Path(out)
+    trainer = method.trainer
     data = trainer.data
     cams = data.scene.cameras
     for i in data.test_ids:
@@ -33,7 +35,7 @@ def write_outputs(trainer, out: Path) -> dict:
         write_image(out / "renders" / f"{stem}.png", rgb)
         write_image(out / "renders" / f"{stem}.exr", rgb)
     result: dict = {}
-    caustic = hasattr(trainer, "decaustic_image")
+    caustic = bool(data.train_ids) and method.decaustic_image(data.train_ids[0]) is not None
     captured, cleaned = [], []
     for i in data.train_ids:
         image = data.view(i, 1)[1]
@@ -42,7 +44,7 @@ def write_outputs(trainer, out: Path) -> dict:
             captured.append(psnr(image, gt))
         if not caustic:
             continue
-        free = trainer.decaustic_image(i)
+        free = method.decaustic_image(i)
         stem = _stem(cams[i].name)
         write_image(out / "caustic" / f"{stem}.exr", (image - free).cpu().numpy())
         write_image(out / "decaustic" / f"{stem}.png", free.cpu().numpy())
@@ -53,6 +55,4 @@ def write_outputs(trainer, out: Path) -> dict:
         result["psnr_captured_gt"] = float(np.mean(captured))
     if cleaned:
         result["psnr_decaustic_gt"] = float(np.mean(cleaned))
-    if caustic:
-        result["caustic_k"] = trainer.k
     return result

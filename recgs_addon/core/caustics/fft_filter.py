@@ -1,4 +1,4 @@
-"""Caustic estimation with a 2D FFT low-pass (RecGS, Zhang et al. 2024), plain functions.
+"""The 2D FFT low-pass of RecGS (Zhang et al. 2024) and the measures of a caustic estimate, plain functions.
 
 Images are (H, W, C) float tensors (channel last, as the trainer holds them). The low-pass
 keeps a ``k x k`` block of frequencies around DC: integer frequencies ``-r..r`` cycles per
@@ -22,7 +22,7 @@ import torch
 DEFAULT_K = 9
 
 
-def _check_k(k: int) -> int:
+def check_k(k: int) -> int:
     if int(k) != k or k < 1 or k % 2 == 0:
         raise ValueError(f"caustic filter size k must be a positive odd integer, got {k}")
     return int(k) // 2
@@ -38,7 +38,7 @@ def frequency_indices(n: int, r: int, device=None) -> torch.Tensor:
 
 def lowpass_mask(height: int, width: int, k: int = DEFAULT_K, device=None) -> torch.Tensor:
     """(H, W) bool mask of the kept FFT coefficients."""
-    r = _check_k(k)
+    r = check_k(k)
     mask = torch.zeros(height, width, dtype=torch.bool, device=device)
     rows = frequency_indices(height, r, device)
     cols = frequency_indices(width, r, device)
@@ -110,7 +110,7 @@ def choose_k(residuals: list[torch.Tensor], k_min: int = 5, k_max: int = 25, rat
     power per coefficient is still ``ratio`` times the high-frequency floor (median power of
     the rings between 2 * r_max and 4 * r_max cycles), i.e. where the low-frequency (caustic)
     excess ends. Clamped to [k_min, k_max], odd."""
-    r_lo, r_hi = _check_k(k_min), _check_k(k_max)
+    r_lo, r_hi = check_k(k_min), check_k(k_max)
     smallest = min(min(r.shape[0], r.shape[1]) for r in residuals)
     r_far = max(r_hi + 1, min(4 * r_hi, smallest // 2))
     power = radial_power(residuals, r_far)
@@ -121,30 +121,3 @@ def choose_k(residuals: list[torch.Tensor], k_min: int = 5, k_max: int = 25, rat
         if float(power[ring]) >= ratio * floor:
             r = max(r, ring)
     return 2 * min(r, r_hi) + 1
-
-
-class CausticFields(torch.nn.Module):
-    """Per-image low-frequency fields for the ``joint`` baseline: ``k x k`` complex Fourier
-    coefficients per image and channel, learnt with the Gaussians. ``field(i, H, W)`` is the
-    real part of the inverse FFT with amplitudes independent of the resolution
-    (``norm="forward"``), so the same coefficients serve every pyramid level."""
-
-    def __init__(self, n_images: int, k: int = DEFAULT_K, channels: int = 3):
-        super().__init__()
-        self.r = _check_k(k)
-        self.k = k
-        self.coef = torch.nn.Parameter(torch.zeros(n_images, channels, k, k, 2))
-
-    def field(self, index: int, height: int, width: int) -> torch.Tensor:
-        """(H, W, C) field of image ``index``."""
-        r = self.r
-        f = torch.arange(-r, r + 1)
-        rows = torch.remainder(f, height)
-        cols = torch.remainder(f, width)
-        coef = torch.view_as_complex(self.coef[index])  # (C, k, k)
-        c = coef.shape[0]
-        spec = torch.zeros(c, height * width, dtype=coef.dtype)
-        flat = (rows.unsqueeze(1) * width + cols.unsqueeze(0)).reshape(-1)
-        spec = spec.index_add(1, flat, coef.reshape(c, -1))
-        out = torch.fft.ifft2(spec.view(c, height, width), norm="forward").real
-        return out.permute(1, 2, 0)

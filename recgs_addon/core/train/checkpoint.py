@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from .errors import RecGSError
+from ..errors import RecGSError
 
 CHECKPOINT_VERSION = 1
 

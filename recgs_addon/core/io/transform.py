@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import RecGSError
-from .gaussians import SH_C0, SH_C1, SH_C2, SH_C3, GaussianSet
+from ..errors import RecGSError
+from ..model.gaussians import SH_C0, SH_C1, SH_C2, SH_C3, GaussianSet
 
 
 def sh_basis_np(dirs: np.ndarray, degree: int) -> np.ndarray:
@@ -90,7 +90,7 @@ def transform_gaussians(g: GaussianSet, matrix: np.ndarray) -> GaussianSet:
     if np.allclose(R, np.eye(3), atol=0, rtol=0) and s == 1.0 and not np.any(t):
         return GaussianSet(g.means.copy(), g.log_scales.copy(), g.quats.copy(),
                            g.logit_opacities.copy(), g.sh.copy())
-    from .cameras import rotmat_to_quat
+    from ..model.cameras import rotmat_to_quat
 
     means = (g.means.astype(np.float64) * s) @ R.T + t
     log_scales = g.log_scales.astype(np.float64) + np.log(s)

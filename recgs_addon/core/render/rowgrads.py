@@ -1,6 +1,6 @@
 """Row-sparse gradients: a render touches few rows of a large model, so keep it that way.
 
-:func:`recgs_addon.core.rasterizer.render` reads every per-Gaussian input only at the rows of
+:func:`recgs_addon.core.render.rasterizer.render` reads every per-Gaussian input only at the rows of
 the Gaussians in view (``index_select(0, ids)``, about a sixth of the model on the sample
 survey). Under plain autograd each of those reads has a full-size backward: a fresh zero
 tensor as large as the parameter, then a scatter into it. On a 1.5M-Gaussian model with SH

@@ -4,10 +4,10 @@ Entry point: :func:`render`. Design and measured speed: ``docs/rasterizer.md``.
 
 Pipeline
 --------
-1. :func:`recgs_addon.core.projection.project_gaussians` (per Gaussian, float64, autograd):
+1. :func:`recgs_addon.core.render.projection.project_gaussians` (per Gaussian, float64, autograd):
    a cheap conservative candidate test, then the exact cull on the candidates, EWA-project,
    0.3 px dilation, opacity-aware radius, stable depth sort.
-2. Colours from spherical harmonics (:mod:`recgs_addon.core.sh`, autograd).
+2. Colours from spherical harmonics (:mod:`recgs_addon.core.model.sh`, autograd).
 3. Binning (no gradient): every visible Gaussian is listed in each tile that its opacity-aware
    ellipse reaches (exact per tile row, not the bounding square); the list is stably sorted by
    tile, so inside a tile it stays in depth order (ties by index).
@@ -35,7 +35,7 @@ from typing import NamedTuple, Optional
 import torch
 
 from .projection import ALPHA_MIN, _index_rows, camera_centre, project_gaussians
-from .sh import eval_sh_colour
+from ..model.sh import eval_sh_colour
 
 #: Alpha is clamped here (INRIA): one Gaussian never makes a pixel fully opaque, which also
 #: keeps 1 / (1 - alpha) <= 100 in the backward pass.
@@ -543,7 +543,7 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
             joined only for the visible Gaussians: for a large model this avoids copying every
             coefficient of every Gaussian on each render.
         viewmat: (4, 4) world-to-camera matrix, OpenCV camera axes (x right, y down, z
-            forward), see :mod:`recgs_addon.core.cameras`.
+            forward), see :mod:`recgs_addon.core.model.cameras`.
         K: (3, 3) intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels; pixel (i, j) is
             centred at (i + 0.5, j + 0.5).
         width, height: image size in pixels.
@@ -560,7 +560,7 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
             replays the forward chunk by chunk): about 8 bytes less per pair, ~1/3 slower.
         gather: ``gather(x, ids)`` reads rows ``ids`` (the visible Gaussians) of a
             per-Gaussian input; default ``x.index_select(0, ids)``. A trainer passes a
-            :class:`recgs_addon.core.rowgrads.RowGrads` so that gradients stay row-sparse.
+            :class:`recgs_addon.core.render.rowgrads.RowGrads` so that gradients stay row-sparse.
 
     The dtype of ``means`` (float32 or float64) sets the compositing precision; the
     per-Gaussian projection is always float64. Gradients reach every input through

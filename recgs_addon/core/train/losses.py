@@ -8,6 +8,7 @@ over pixels and channels.
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
@@ -43,6 +44,11 @@ def _blur(x: torch.Tensor, w1d: torch.Tensor) -> torch.Tensor:
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Mean SSIM of two images (differentiable in both)."""
+    return ssim_map(a, b).mean()
+
+
+def ssim_map(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(B, C, H, W) SSIM of each pixel's window."""
     a, b = _bchw(a), _bchw(b)
     w = gaussian_window(dtype=a.dtype).to(a.device)
     mu_a, mu_b = _blur(a, w), _blur(b, w)
@@ -52,16 +58,28 @@ def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     cov = _blur(a * b, w) - mu_ab
     num = (2 * mu_ab + SSIM_C1) * (2 * cov + SSIM_C2)
     den = (mu_aa + mu_bb + SSIM_C1) * (var_a + var_b + SSIM_C2)
-    return (num / den).mean()
+    return num / den
 
 
 def l1(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a - b).abs().mean()
 
 
-def training_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = LAMBDA_DSSIM):
-    """(1 - lambda) L1 + lambda (1 - SSIM), as INRIA 3DGS and RecGS."""
-    return (1.0 - lambda_dssim) * l1(render, target) + lambda_dssim * (1.0 - ssim(render, target))
+def training_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = LAMBDA_DSSIM,
+                  weight: Optional[torch.Tensor] = None):
+    """(1 - lambda) L1 + lambda (1 - SSIM), as INRIA 3DGS and RecGS. ``render``, ``target``:
+    (H, W, 3). ``weight`` (H, W), optional: how much each pixel counts; both terms become
+    weighted means over the pixels (the SSIM term of each pixel's window), so a weight of 1
+    everywhere gives the plain loss."""
+    if weight is None:
+        return (1.0 - lambda_dssim) * l1(render, target) + lambda_dssim * (1.0 - ssim(render, target))
+    total = weight.sum().clamp_min(1e-12)
+    w = weight.unsqueeze(-1)
+    loss = (1.0 - lambda_dssim) * ((render - target).abs() * w).sum() / (3 * total)
+    if lambda_dssim:
+        smap = ssim_map(render, target).mean(1)[0]   # (H, W)
+        loss = loss + lambda_dssim * ((1.0 - smap) * weight).sum() / total
+    return loss
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:

@@ -1,0 +1,55 @@
+"""Settings of the caustic methods (the trainer's own are in core/train/config.py).
+
+``mode`` chooses the method: ``3dgs`` (plain, on the photos as captured), ``oracle`` (plain, on
+the ground-truth photos: the upper bound), ``recgs`` (the recurrent loop, ``recgs.py``),
+``filter2d`` and ``joint`` (the paper's baselines, ``baselines.py``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..errors import RecGSError
+
+MODES = ("3dgs", "oracle", "recgs", "filter2d", "joint")
+#: Modes that train on caustic-free estimates (and write caustic maps).
+CAUSTIC_MODES = ("recgs", "filter2d", "joint")
+
+
+@dataclass
+class CausticConfig:
+    mode: str = "3dgs"
+    caustic_k: int = 0                   # low-pass block size (odd; the paper: 9); 0 = from the residual spectrum
+    caustic_dc: bool = False             # recgs: keep C's DC term (the paper); False: C has zero mean per view
+    caustic_model: str = "additive"      # additive: I - C (paper) | multiplicative: I / exp(C_log)
+    warmup: int = 3000                   # recgs: at most this many plain steps before the first recurrence
+    warmup_share: float = 0.5            # recgs: ... and at most this share of the time limit
+    recurrence_patience: int = 2         # recgs: rounds in a row that hurt held-out views before C is dropped
+    harm_tol: float = 0.5                # recgs: dB below the plain model's held-out PSNR that counts as hurting
+    stall_ratio: float = 0.6             # recgs: C is not settling when its change shrinks by less than
+    stall_growth: float = 0.15           # ... this per round while mean |C| grows by more than this
+    recurrence_steps: int = 200          # recgs: optimisation steps per recurrence
+    max_recurrences: int = 40
+    recurrence_tol: float = 0.1          # stop when mean |dC| / mean |C| falls below this
+    caustic_floor: float = 0.01          # recgs: C is dropped when mean |C| is below this (1 % of full scale)
+
+    #: Settings added since a release, with the value that reproduces runs saved before them.
+    _BEFORE = {"caustic_dc": True}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CausticConfig":
+        """The settings saved in a checkpoint (``asdict`` form; checkpoints before the split kept
+        them in the trainer's dict, whose other keys are ignored). A setting newer than the
+        checkpoint takes the value the run was made with, so a resume continues it unchanged."""
+        d = {**cls._BEFORE, **{k: v for k, v in d.items() if k in cls.__dataclass_fields__}}
+        return cls(**d)
+
+    def validate(self) -> None:
+        """Refuse settings no run can use (called before any data is read)."""
+        if self.mode not in MODES:
+            raise RecGSError(f"unknown mode {self.mode!r} (choose from {', '.join(MODES)})")
+        if self.caustic_k < 0 or (self.caustic_k and self.caustic_k % 2 == 0):
+            raise RecGSError(f"caustic filter size must be a positive odd number (or 0 = auto), got {self.caustic_k}")
+        if self.caustic_model not in ("additive", "multiplicative"):
+            raise RecGSError(f"unknown caustic model {self.caustic_model!r} (additive or multiplicative)")
+        if self.recurrence_steps < 1:
+            raise RecGSError(f"recurrence steps must be at least 1, got {self.recurrence_steps}")

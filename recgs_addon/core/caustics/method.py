@@ -1,0 +1,51 @@
+"""A training method: the trainer plus what a caustic method adds, behind one interface the
+runner, the benchmarks and the outputs use.
+
+:class:`Method` is plain 3DGS (``3dgs``, or ``oracle`` trained on the ground-truth photos).
+The caustic methods (``recgs.py``, ``baselines.py``) subclass it: they fill the trainer's
+:class:`~..train.objective.Objective` and, for RecGS, drive the trainer in segments.
+``build.make_method`` builds the method ``CausticConfig.mode`` names.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Callable, Optional
+
+import torch
+
+from ..train.trainer import Progress, Trainer
+from .config import CausticConfig
+
+
+class Method:
+    """Plain 3DGS: the trainer as it is."""
+
+    def __init__(self, trainer: Trainer, ccfg: CausticConfig):
+        self.trainer, self.ccfg = trainer, ccfg
+
+    @property
+    def data(self):
+        return self.trainer.data
+
+    def run(self, on_progress: Optional[Callable[[Progress], None]] = None,
+            should_stop: Optional[Callable[[], bool]] = None,
+            on_checkpoint: Optional[Callable[[Trainer], None]] = None, checkpoint_every_s: float = 60.0) -> str:
+        """Train until done or ``should_stop()``; returns why it stopped (``"stopped"``: told to)."""
+        return self.trainer.run(on_progress, should_stop, on_checkpoint, checkpoint_every_s)
+
+    def decaustic_image(self, index: int) -> Optional[torch.Tensor]:
+        """Caustic-free estimate (H, W, 3, not clipped) of a training view's photo; None for
+        methods that make none."""
+        return None
+
+    def summary(self) -> dict:
+        """What the method adds to a run's metrics."""
+        return {}
+
+    def state_dict(self) -> dict:
+        s = self.trainer.state_dict()
+        s["caustic_config"] = asdict(self.ccfg)
+        return s
+
+    def load_state_dict(self, s: dict) -> None:
+        self.trainer.load_state_dict(s)

@@ -1,0 +1,294 @@
+"""Caustic removal: the recurrent loop of RecGS (Zhang et al. 2024) and its baselines.
+
+:class:`RecGS` drives a :class:`~..train.trainer.Trainer` in segments and fills its objective
+with caustic-free targets:
+
+* train plain 3DGS on the captured images I (warm-up: until density control has
+  stopped growing the model, held-out PSNR plateaus, ``ccfg.warmup`` steps, or
+  ``ccfg.warmup_share`` of the time limit, whichever comes first), then recur:
+  render every training view, low-pass the residual ``R = I - render`` (``fft_filter.py``,
+  ``estimate.py``)
+  into the caustic estimate ``C`` (less its mean per view and channel unless
+  ``ccfg.caustic_dc``: caustics move light without adding any, and a DC term would carry the
+  warm-up model's brightness error, see docs/caustics.md), train ``ccfg.recurrence_steps``
+  steps against ``I - C``, and repeat until ``C`` stops changing (``mean |C_new - C_old| / mean |C_new| <
+  cfg.recurrence_tol``), or at ``ccfg.max_recurrences`` or the time/iteration limit.
+  ``ccfg.caustic_model = "multiplicative"`` estimates a log-gain
+  ``L = lowpass(log(I + e) - log(render + e))`` and fits ``(I + e) exp(-L) - e`` instead,
+  since caustics modulate the light; ``ccfg.caustic_k = 0`` picks the block size from the
+  residual spectrum at the first recurrence (``caustics.choose_k``).
+
+  Do no harm: C is *dropped* and the model trains on as plain 3DGS on the captured images
+  (stage ``settle``) when C is negligible (``mean |C| < cfg.caustic_floor``) or does not
+  settle (its change shrinks by less than ``ccfg.stall_ratio`` per round while ``mean |C|``
+  grows by more than ``ccfg.stall_growth``: an estimate of a caustic field converges, one that
+  follows model error keeps growing, which is what happens without caustics); these go on
+  from the current model. When ``ccfg.recurrence_patience`` rounds in a row score more than
+  ``ccfg.harm_tol`` dB below the plain model on the held-out views against the captured photos
+  (``Trainer.heldout_psnr``), the plain model the recurrences started from comes back first.
+The baselines ``filter2d`` and ``joint`` are in ``baselines.py``.
+
+Held-out views are scored for the run's growth, SH and plateau decisions against the held-out
+image with its caustics compensated the same way (``I - lowpass(I - render)``), so moving
+light does not read as model error; the do-no-harm test uses the photos as captured, since
+compensation would hide the low-frequency drift it looks for. Scores against ground truth
+come from ``TrainData.gt_view`` and are only reported. Settings: ``config.py``.
+"""
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import torch
+
+from ..train.objective import FixedTargets
+from ..train.trainer import Progress, Trainer
+from . import fft_filter
+from .config import CausticConfig
+from .estimate import estimate_caustics, remove_caustics
+from .method import Method
+
+PLATEAU = "held-out PSNR plateau"
+
+
+class RecGS(Method):
+    def __init__(self, trainer: Trainer, ccfg: CausticConfig):
+        super().__init__(trainer, ccfg)
+        self.k: Optional[int] = ccfg.caustic_k or None
+        self.eval_k = ccfg.caustic_k or fft_filter.DEFAULT_K
+        self.targets = FixedTargets(reference=lambda image, render: self._decaustic(
+            image, self._estimate(image, render, self.eval_k)))
+        trainer.set_objective(self.targets)
+        self.maps: dict[int, torch.Tensor] = {}  # C or log-gain per training view (full res)
+        self.recurrence = 0
+        self.rec_history: list[dict] = []
+        self.next_due: Optional[int] = None
+        self.stage = "warmup"
+        #: the plain model the recurrences start from (``score``: held-out PSNR against the
+        #: captured images; ``params``, ``sh_degree``), and rounds in a row that scored worse
+        self.plain: Optional[dict] = None
+        self.misses = 0
+        self.drop_reason: Optional[str] = None  # why C was dropped (see _drop), if it was
+
+    @property
+    def stage(self) -> str:
+        return self._stage
+
+    @stage.setter
+    def stage(self, value: str) -> None:
+        self._stage = value
+        self.trainer.label = value
+
+    # --- estimates -------------------------------------------------------------------------
+    def _decaustic(self, image: torch.Tensor, cmap: torch.Tensor) -> torch.Tensor:
+        return remove_caustics(image, cmap, self.ccfg.caustic_model)
+
+    def _estimate(self, image: torch.Tensor, rgb: torch.Tensor, k: int) -> torch.Tensor:
+        return estimate_caustics(image, rgb, k, self.ccfg.caustic_model, self.ccfg.caustic_dc)
+
+    def caustic_map(self, index: int) -> torch.Tensor:
+        """Additive caustic estimate ``C = I - (caustic-free I)`` of a training view (full res)."""
+        image = self.data.view(index, 1)[1]
+        return image - self.decaustic_image(index)
+
+    @torch.no_grad()
+    def decaustic_image(self, index: int) -> torch.Tensor:
+        image = self.data.view(index, 1)[1]
+        cmap = self.maps.get(index)
+        return image if cmap is None else self._decaustic(image, cmap)
+
+    def _set_maps(self, maps: dict[int, torch.Tensor]) -> None:
+        """Use these estimates: each training view now fits its caustic-free image."""
+        self.maps = maps
+        self.targets.clear()
+        for i, m in maps.items():
+            self.targets.images[i] = self._decaustic(self.data.view(i, 1)[1], m)
+
+    # --- the recurrence --------------------------------------------------------------------
+    @torch.no_grad()
+    def recur(self) -> dict:
+        """One re-estimation of C for every training view; updates the targets."""
+        tr = self.trainer
+        ids = self.data.train_ids
+        renders = {i: tr.render_view(i) for i in ids}
+        if self.k is None:
+            self.k = fft_filter.choose_k([self.data.view(i, 1)[1] - renders[i] for i in ids])
+        new = {i: self._estimate(self.data.view(i, 1)[1], renders[i], self.k) for i in ids}
+        old = [self.maps.get(i, torch.zeros_like(new[i])) for i in ids]
+        change = fft_filter.caustic_change([new[i] for i in ids], old)
+        self._set_maps(new)
+        self.recurrence += 1
+        level = fft_filter.mean_abs([self.caustic_map(i) for i in ids])
+        entry = {"recurrence": self.recurrence, "iteration": tr.step, "elapsed": round(tr.elapsed, 2),
+                 "c_change": change, "mean_abs_c": level, "k": self.k}
+        self.rec_history.append(entry)
+        return entry
+
+    def _due(self) -> bool:
+        """Work is due before the next step: the warm-up is over, or a recurrence is due."""
+        c, tr = self.ccfg, self.trainer
+        if self.stage == "warmup":
+            return tr.step >= c.warmup or self._warmup_time_up() or self._growth_over()
+        return self.stage == "recurrence" and self.next_due is not None and tr.step >= self.next_due
+
+    def _schedule(self) -> Optional[str]:
+        """Do the work ``_due`` found; returns why the run ends, if it does."""
+        c = self.ccfg
+        if self.stage == "warmup":
+            self._start_recurrences()
+        if self.recurrence and self._judge_round():
+            return None
+        entry = self.recur()
+        prev = self.rec_history[-2] if len(self.rec_history) >= 2 else None
+        done = None
+        if entry["mean_abs_c"] < c.caustic_floor:
+            self._drop(f"no caustics to remove (mean |C| {entry['mean_abs_c']:.4f})", restore=False)
+        elif entry["c_change"] < c.recurrence_tol:
+            done = f"caustic estimate converged (change {entry['c_change']:.3f})"
+        elif prev is not None and self._stalled(entry):
+            # a caustic field's estimate settles geometrically; one that keeps changing and
+            # growing follows model error (surveys without caustics)
+            self._drop(f"caustic estimate is not settling (change {prev['c_change']:.3f} -> "
+                       f"{entry['c_change']:.3f}, mean |C| {prev['mean_abs_c']:.4f} -> {entry['mean_abs_c']:.4f})",
+                       restore=False)
+        elif self.recurrence >= c.max_recurrences:
+            done = "recurrence limit"
+        if self.stage == "recurrence":
+            self.next_due = None if done else self.trainer.step + c.recurrence_steps
+        return done
+
+    def _stalled(self, entry: dict) -> bool:
+        """The last round's C changed by more than ``stall_ratio`` of the round before (and more
+        than twice the tolerance) while ``mean |C|`` grew by more than ``stall_growth``."""
+        c, prev = self.ccfg, self.rec_history[-2]
+        return (entry["c_change"] > max(c.stall_ratio * prev["c_change"], 2 * c.recurrence_tol)
+                and entry["mean_abs_c"] > (1 + c.stall_growth) * prev["mean_abs_c"])
+
+    def _growth_over(self) -> bool:
+        """Density control has stopped adding Gaussians (frozen, at its budget, or past its
+        last step): from here the model's low frequencies change little, so C can hold
+        caustics rather than the model's own growing pains."""
+        tr = self.trainer
+        n = int(tr.params["means"].shape[0])
+        return tr.step > tr.cfg.densify_from and (not tr.densifying() or (tr.budget is not None and n >= tr.budget))
+
+    def _warmup_time_up(self) -> bool:
+        """With a time limit, the warm-up gets at most ``warmup_share`` of it."""
+        c, limit = self.ccfg, self.trainer.cfg.max_minutes
+        return limit is not None and self.trainer.elapsed >= c.warmup_share * 60 * limit
+
+    # --- do no harm: the held-out check of the recurrences ------------------------------------
+    def _harm(self, score: Optional[float]) -> Optional[str]:
+        """Why ``score`` counts as hurting held-out views (more than ``harm_tol`` dB below the
+        plain model), or None."""
+        if score is None or self.plain is None or self.plain["score"] is None:
+            return None
+        if score >= self.plain["score"] - self.ccfg.harm_tol:
+            return None
+        return f"caustic estimate hurt held-out views ({score:.2f} dB against {self.plain['score']:.2f} dB)"
+
+    def _snapshot(self, score: Optional[float]) -> None:
+        """Remember the plain model (before any C) and its held-out score."""
+        self.plain = {"score": score, **self.trainer.snapshot()}
+        self.misses = 0
+
+    def _judge_round(self) -> bool:
+        """Score the model trained against the last estimate of C on the held-out views. If
+        ``recurrence_patience`` rounds in a row score more than ``harm_tol`` dB below the plain
+        model the recurrences started from, C is taking real scene content (on a survey without
+        caustics it only absorbs model error): go back to the plain model, drop C, and let it
+        train on as plain 3DGS until the held-out plateau or a limit. Returns whether the
+        recurrences are over."""
+        score = self.trainer.heldout_psnr()
+        self.rec_history[-1]["psnr_heldout"] = score
+        harm = self._harm(score)
+        self.misses = self.misses + 1 if harm else 0
+        if not harm or self.misses < self.ccfg.recurrence_patience:
+            return False
+        self._drop(harm)
+        return True
+
+    def _drop(self, why: str, restore: bool = True) -> None:
+        """End the recurrences without C: the model trains on as plain 3DGS on the captured
+        images (stage ``settle``) until the held-out plateau or a limit. ``restore``: start from
+        the plain model the recurrences started from (when C hurt held-out views); otherwise go
+        on from the current model and its Adam state, so no steps are thrown away."""
+        if restore:
+            self.trainer.restore(self.plain)
+        self._set_maps({})  # targets = the captured images
+        self.misses = 0
+        self.drop_reason = why
+        self.stage, self.next_due = "settle", None
+        self.trainer.restart_plateau(forget_best=True)
+
+    @property
+    def dropped(self) -> bool:
+        return self.drop_reason is not None
+
+    def _start_recurrences(self) -> None:
+        self.stage = "recurrence"
+        self.next_due = self.trainer.step
+        self.trainer.restart_plateau()
+        self._snapshot(self.trainer.heldout_psnr())  # the plain model is the one not to fall below
+
+    # --- the loop --------------------------------------------------------------------------
+    def run(self, on_progress: Optional[Callable[[Progress], None]] = None,
+            should_stop: Optional[Callable[[], bool]] = None,
+            on_checkpoint: Optional[Callable[[Trainer], None]] = None, checkpoint_every_s: float = 60.0) -> str:
+        tr = self.trainer
+        progress = None if on_progress is None else (lambda p: on_progress(self._annotate(p)))
+        while True:
+            reason = tr.train_until(self._due, progress, should_stop, on_checkpoint, checkpoint_every_s)
+            if reason == "stopped":
+                return reason
+            if reason == "until":
+                reason = self._schedule()
+                if reason is None:
+                    continue
+                tr.done_reason = reason
+            elif reason == PLATEAU and self.stage in ("warmup", "recurrence"):
+                # after the warm-up's plateau come the recurrences; during them the convergence
+                # test decides, not the plateau
+                if self.stage == "warmup":
+                    self._start_recurrences()
+                tr.done_reason = None
+                continue
+            break
+        if self.stage == "recurrence":
+            # the same test when a limit ends the run: a caustic estimate that hurts held-out
+            # views is dropped, and the run ends with the plain model
+            harm = self._harm(tr.heldout_psnr())
+            if harm:
+                self._drop(harm)
+        tr.finish(progress)
+        return reason
+
+    def _annotate(self, p: Progress) -> Progress:
+        if self.rec_history:
+            p.extra.update(recurrence=self.recurrence, c_change=self.rec_history[-1]["c_change"])
+        return p
+
+    def summary(self) -> dict:
+        return {"caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,
+                "psnr_heldout_plain": (self.plain or {}).get("score")}
+
+    # --- checkpoints -----------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        s = super().state_dict()
+        s["caustic"] = {
+            "k": self.k, "maps": {int(i): m.cpu() for i, m in self.maps.items()}, "recurrence": self.recurrence,
+            "rec_history": self.rec_history, "next_due": self.next_due, "stage": self.stage,
+            "plain": None if self.plain is None else {
+                **self.plain, "params": {n: v.cpu() for n, v in self.plain["params"].items()}},
+            "misses": self.misses, "drop_reason": self.drop_reason,
+        }
+        return s
+
+    def load_state_dict(self, s: dict) -> None:
+        super().load_state_dict(s)
+        cs = s["caustic"]
+        self.k, self.recurrence, self.stage = cs["k"], cs["recurrence"], cs["stage"]
+        self.rec_history, self.next_due = list(cs["rec_history"]), cs["next_due"]
+        self.plain = cs.get("plain")
+        # checkpoints written before the do-no-harm tests have none of these
+        self.misses, self.drop_reason = cs.get("misses", 0), cs.get("drop_reason")
+        self._set_maps({int(i): m.to(self.trainer.device) for i, m in cs["maps"].items()})

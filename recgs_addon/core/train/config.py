@@ -1,0 +1,89 @@
+"""Training settings: :class:`TrainConfig` holds every setting of the trainer (a caustic
+method's own settings live beside it, in core/caustics/config.py); :func:`preset` gives
+
+* ``default``: lean: coarse to fine, growth under a budget that stops once held-out PSNR
+  stops improving, SH degree raised only when it helps held-out views, stop on a held-out
+  plateau (measured in docs/training.md);
+* ``vanilla``: INRIA's schedule: 30k iterations, densify every 100 from 500 to 15k, opacity
+  reset every 3k, SH degree +1 every 1k.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Optional
+
+from ..errors import RecGSError
+
+
+@dataclass
+class TrainConfig:
+    preset: str = "default"
+    iterations: int = 30_000            # upper bound on optimisation steps
+    max_minutes: Optional[float] = None  # wall-clock limit (None: none)
+    budget: Optional[int] = None         # max Gaussians; None = "auto" (stop growth on plateau)
+    downscale: int = 1                   # training resolution = image size / downscale
+    sh_degree: int = 3                   # cap on the SH degree
+    sh_policy: str = "probation"         # "probation" (raise only if it helps) | "schedule" (INRIA)
+    sh_every: int = 1000                 # "schedule": +1 degree every this many steps
+    seed: int = 0
+    device: str = "cpu"
+    holdout_every: int = 8               # LLFF: every 8th image by sorted name is held out; 0 = none
+    # learning rates (INRIA); means scaled by the scene extent, decayed log-linearly
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacity: float = 5e-2
+    lr_sh_dc: float = 2.5e-3
+    lr_sh_rest: float = 2.5e-3 / 20
+    lambda_dssim: float = 0.2
+    # density control
+    densify_from: int = 500
+    densify_until: int = 15_000
+    densify_every: int = 100
+    densify_grad_threshold: float = 2e-4
+    opacity_reset_every: int = 3000
+    # coarse to fine: ((until_step, extra downscale factor), ...); the last level is 1
+    pyramid: tuple = ()
+    # evaluation and stopping
+    eval_every: int = 1000
+    eval_views: int = 0                  # 0 = all held-out views
+    plateau_patience: int = 0            # evals without a gain of plateau_min_gain dB -> stop; 0 = never
+    plateau_min_gain: float = 0.02
+    growth_patience: int = 3             # budget auto: evals without plateau_min_gain*5 dB -> stop growth
+    growth_rate: float = 0.0             # max fractional growth per densification (0 = unlimited)
+    pixels_per_gaussian: float = 0.0     # budget auto: at most (training pixels / this) Gaussians
+    sh_probation: int = 1000             # steps given to a new SH degree before it is judged
+    sh_min_gain: float = 0.05            # dB a new SH degree must add on held-out views
+    log_every: int = 50
+    background: tuple = (0.0, 0.0, 0.0)
+    compiled: Optional[bool] = None      # rasterizer through torch.compile: None = when available
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        """The config saved in a checkpoint (``asdict`` form). Keys that are not trainer
+        settings (a method's own, which older checkpoints kept in the same dict) are ignored."""
+        d = {k: v for k, v in d.items() if k in cls.__dataclass_fields__}
+        return cls(**{**d, "pyramid": tuple(tuple(x) for x in d["pyramid"]), "background": tuple(d["background"])})
+
+    def validate(self) -> None:
+        """Refuse settings no run can use (called before any data is read)."""
+        if self.downscale < 1:
+            raise RecGSError(f"downscale must be an integer >= 1, got {self.downscale}")
+        if self.budget is not None and self.budget < 1:
+            raise RecGSError(f"budget must be at least 1 Gaussian, got {self.budget}")
+
+
+def preset(name: str, **overrides) -> TrainConfig:
+    """``vanilla``: INRIA's schedule. ``default``: the lean schedule measured in docs/training.md."""
+    if name == "vanilla":
+        cfg = TrainConfig(preset="vanilla", iterations=30_000, sh_policy="schedule",
+                          plateau_patience=0, budget=10**9, eval_every=1000)
+    elif name == "default":
+        cfg = TrainConfig(preset="default", iterations=30_000, densify_from=200, densify_until=4000,
+                          densify_every=100, opacity_reset_every=0, pyramid=((300, 2),),
+                          eval_every=250, plateau_patience=4, growth_patience=2, sh_policy="probation",
+                          growth_rate=0.25, pixels_per_gaussian=8.0)
+    else:
+        raise RecGSError(f"unknown preset {name!r} (choose default or vanilla)")
+    return replace(cfg, **{k: v for k, v in overrides.items() if v is not None})

@@ -1,0 +1,72 @@
+"""What the trainer fits: the one seam between the trainer and the methods that change it.
+
+The trainer (``trainer.py``) knows nothing of caustics. Per view it asks its
+:class:`Objective` two questions:
+
+* ``target(index, image)``: for a *training* view, the image the loss compares the render
+  against and the weight of each pixel (which pixels count);
+* ``reference(index, image, render)``: for a *held-out* view, the image a render is scored
+  against for the run's own decisions (growth, SH degree, plateau).
+
+plus ``param_groups()``: extra tensors fitted with the Gaussians (the ``joint`` baseline's
+per-view fields), stepped by a second Adam the trainer owns.
+
+The base class fits the photos as captured, every pixel counting: plain 3DGS. The caustic
+methods (core/caustics/) fill it with caustic-free estimates and robust weights; they change
+it between training segments, never from inside a step.
+
+Shapes: ``image`` and targets are (H, W, 3) float32 tensors at the step's resolution;
+weights are (H, W) float32 in [0, 1] or ``None`` (all pixels weigh 1).
+"""
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import torch
+
+from .data import resample
+
+
+class Objective:
+    """Fit the photos as captured; every pixel counts."""
+
+    def target(self, index: int, image: torch.Tensor) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+        """(target (H, W, 3), weight (H, W) or None) for training view ``index`` whose photo at
+        the step's resolution is ``image``."""
+        return image, None
+
+    def reference(self, index: int, image: torch.Tensor, render: torch.Tensor) -> torch.Tensor:
+        """What held-out view ``index``'s ``render`` is scored against (default: its photo)."""
+        return image
+
+    def param_groups(self) -> list[dict]:
+        """Extra tensors the trainer optimises with the Gaussians, as Adam parameter groups
+        (``{"params": [...], "lr": ...}``; default: none)."""
+        return []
+
+
+class FixedTargets(Objective):
+    """Per-view replacement targets (and optional weights) held at full training resolution and
+    area-averaged to each pyramid level; views without one fit their photo, all pixels counting.
+
+    ``images[index]``: (H, W, 3); ``weights[index]``: (H, W). Both dicts may be changed
+    between training segments (the caustic methods do; ``clear()`` returns to the photos).
+    ``reference(image, render)``, optional: what a held-out render is scored against."""
+
+    def __init__(self, reference: Optional[Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = None):
+        self.images: dict[int, torch.Tensor] = {}
+        self.weights: dict[int, torch.Tensor] = {}
+        self._reference = reference
+
+    def reference(self, index, image, render):
+        return image if self._reference is None else self._reference(image, render)
+
+    def target(self, index, image):
+        h, w = image.shape[:2]
+        t = self.images.get(index)
+        wt = self.weights.get(index)
+        return (image if t is None else resample(t, h, w)), (None if wt is None else resample(wt, h, w))
+
+    def clear(self) -> None:
+        self.images.clear()
+        self.weights.clear()
