@@ -1,6 +1,7 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from recgs_addon.core.train.losses import l1, psnr, ssim, training_loss
@@ -66,3 +67,26 @@ def test_tiny_images_are_finite():
     loss = training_loss(a, torch.rand(1, 1, 3))
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(a.grad).all()
+
+
+def test_weighted_loss_with_unit_weights_is_the_plain_loss():
+    g = torch.Generator().manual_seed(1)
+    a, b = torch.rand(20, 24, 3, generator=g), torch.rand(20, 24, 3, generator=g)
+    for lam in (0.0, 0.2, 1.0):
+        assert torch.allclose(training_loss(a, b, lam, torch.ones(20, 24)), training_loss(a, b, lam), atol=1e-6)
+
+
+def test_pixels_with_zero_weight_do_not_count():
+    g = torch.Generator().manual_seed(2)
+    a = torch.rand(20, 24, 3, generator=g).requires_grad_(True)
+    b = torch.rand(20, 24, 3, generator=g)
+    w = torch.ones(20, 24)
+    w[3:7, 5:9] = 0
+    loss = training_loss(a, b, 0.0, w)
+    loss.backward()
+    assert float(a.grad[3:7, 5:9].abs().max()) == 0.0 and float(a.grad.abs().sum()) > 0
+    b2 = b.clone()
+    b2[3:7, 5:9] = 1.0 - b2[3:7, 5:9]            # change what the trimmed pixels show
+    assert float(training_loss(a, b2, 0.0, w)) == pytest.approx(float(loss))
+    # the weighted mean: half the weight everywhere changes nothing
+    assert float(training_loss(a, b, 0.2, 0.5 * w)) == pytest.approx(float(training_loss(a, b, 0.2, w)), rel=1e-6)

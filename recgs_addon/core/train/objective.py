@@ -3,12 +3,13 @@
 The trainer (``trainer.py``) knows nothing of caustics. Per view it asks its
 :class:`Objective` two questions:
 
-* ``target(index, image)``: for a *training* view, the image the loss compares the render
-  against and the weight of each pixel (which pixels count);
+* ``target(index, image, render)``: for a *training* view, the image the loss compares the
+  render against and the weight of each pixel (which pixels count), given the photo and the
+  step's render (detached: weights are chosen, not learnt);
 * ``reference(index, image, render)``: for a *held-out* view, the image a render is scored
   against for the run's own decisions (growth, SH degree, plateau).
 
-plus ``param_groups()``: extra tensors fitted with the Gaussians (the ``joint`` baseline's
+plus ``use_ssim`` (whether the loss keeps its SSIM term) and ``param_groups()``: extra tensors fitted with the Gaussians (the ``joint`` baseline's
 per-view fields), stepped by a second Adam the trainer owns.
 
 The base class fits the photos as captured, every pixel counting: plain 3DGS. The caustic
@@ -30,9 +31,13 @@ from .data import resample
 class Objective:
     """Fit the photos as captured; every pixel counts."""
 
-    def target(self, index: int, image: torch.Tensor) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+    #: whether the loss keeps its SSIM term (``TrainConfig.lambda_dssim``) for this objective
+    use_ssim = True
+
+    def target(self, index: int, image: torch.Tensor,
+               render: torch.Tensor) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
         """(target (H, W, 3), weight (H, W) or None) for training view ``index`` whose photo at
-        the step's resolution is ``image``."""
+        the step's resolution is ``image`` and whose render (detached) is ``render``."""
         return image, None
 
     def reference(self, index: int, image: torch.Tensor, render: torch.Tensor) -> torch.Tensor:
@@ -61,7 +66,7 @@ class FixedTargets(Objective):
     def reference(self, index, image, render):
         return image if self._reference is None else self._reference(image, render)
 
-    def target(self, index, image):
+    def target(self, index, image, render):
         h, w = image.shape[:2]
         t = self.images.get(index)
         wt = self.weights.get(index)
