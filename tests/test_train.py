@@ -387,3 +387,54 @@ def test_long_run_stays_finite():
     assert tr.step == steps
     assert not bad, bad[:5]
     assert np.isfinite(tr.evaluate()["psnr"])
+
+
+def test_keep_best_ends_with_the_best_held_out_model(small_scene):
+    """The run ends with the model that scored best on the held-out photos, at an evaluation
+    not right after a densification; keep_best off ends with the last one."""
+    cfg = tiny_cfg(iterations=240, eval_every=20, keep_best=True)
+    tr = make_trainer(small_scene, cfg)
+    # pretend an early model scores far better than any later one
+    tr.train_until(until=lambda: tr.step >= 60)
+    tr.best = {"score": 99.0, "step": tr.step, **tr.snapshot()}
+    kept = {n: v.detach().clone() for n, v in tr.params.items()}
+    tr.run()
+    assert tr.best_step == 60
+    for n in kept:
+        assert torch.equal(tr.params[n].detach(), kept[n]), n
+    # an evaluation within half a densification interval after a densification is not considered
+    tr.best = None
+    tr.last_densify = tr.step - cfg.densify_every // 2 + 1
+    tr._consider_best(50.0)
+    assert tr.best is None
+    tr.last_densify = tr.step - cfg.densify_every // 2
+    tr._consider_best(50.0)
+    assert tr.best["score"] == 50.0 and tr.best["step"] == tr.step
+
+    last = make_trainer(small_scene, tiny_cfg(iterations=240, eval_every=20, keep_best=False))
+    last.run()
+    assert last.best is None and last.best_step is None and last.step == 240
+
+
+def test_blending_weights_add_up_to_the_alpha_of_the_view(small_scene):
+    from recgs_addon.core.outputs.diagnostics import blending_weights, support_summary, view_support
+    from recgs_addon.core.render.rasterizer import render
+    from recgs_addon.core.train.data import view_tensors
+
+    tr = make_trainer(small_scene, tiny_cfg(iterations=60))
+    tr.run()
+    i = tr.data.train_ids[0]
+    w = blending_weights(tr, i)
+    cam, _ = tr.data.view(i, 1)
+    viewmat, K = view_tensors(cam, tr.device)
+    p = tr.params
+    with torch.no_grad():
+        out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], tr._sh(), viewmat, K,
+                     cam.width, cam.height, sh_degree=tr.sh_degree, compiled=False)
+    # alpha = 1 - T_final = sum_i alpha_i T_i over the Gaussians of each pixel
+    assert float(w.sum()) == pytest.approx(float(out.alpha.sum()), rel=1e-3)
+    assert float(w.min()) >= -1e-5
+    support = view_support(tr)
+    assert support.shape == (p["means"].shape[0],) and 0 <= support.min() and support.max() <= len(tr.data.train_ids)
+    s = support_summary(support)
+    assert sum(s["histogram"]) == len(support) and 0 <= s["share_le2"] <= 1

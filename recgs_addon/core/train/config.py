@@ -3,7 +3,8 @@ method's own settings live beside it, in core/caustics/config.py); :func:`preset
 
 * ``default``: lean: coarse to fine, growth under a budget that stops once held-out PSNR
   stops improving, SH degree raised only when it helps held-out views, stop on a held-out
-  plateau (measured in docs/training.md);
+  plateau, and end with the model that scored best on the held-out photos (measured in
+  docs/training.md and docs/caustics.md);
 * ``vanilla``: INRIA's schedule: 30k iterations, densify every 100 from 500 to 15k, opacity
   reset every 3k, SH degree +1 every 1k.
 """
@@ -55,6 +56,7 @@ class TrainConfig:
     pixels_per_gaussian: float = 0.0     # budget auto: at most (training pixels / this) Gaussians
     sh_probation: int = 1000             # steps given to a new SH degree before it is judged
     sh_min_gain: float = 0.05            # dB a new SH degree must add on held-out views
+    keep_best: bool = False              # end with the model that scored best on the held-out photos as captured
     log_every: int = 50
     background: tuple = (0.0, 0.0, 0.0)
     compiled: Optional[bool] = None      # rasterizer through torch.compile: None = when available
@@ -83,7 +85,7 @@ def preset(name: str, **overrides) -> TrainConfig:
         cfg = TrainConfig(preset="default", iterations=30_000, densify_from=200, densify_until=4000,
                           densify_every=100, opacity_reset_every=0, pyramid=((300, 2),),
                           eval_every=250, plateau_patience=4, growth_patience=2, sh_policy="probation",
-                          growth_rate=0.25, pixels_per_gaussian=8.0)
+                          growth_rate=0.25, pixels_per_gaussian=8.0, keep_best=True)
     else:
         raise RecGSError(f"unknown preset {name!r} (choose default or vanilla)")
     return replace(cfg, **{k: v for k, v in overrides.items() if v is not None})

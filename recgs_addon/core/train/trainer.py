@@ -93,6 +93,11 @@ class Trainer:
         self.since_best = 0
         self.reset_done = False
         self.done_reason: Optional[str] = None
+        self.last_densify = -1
+        #: keep_best: the model that scored best on the held-out photos as captured
+        #: (``score``, ``step``, and a ``snapshot()``)
+        self.best: Optional[dict] = None
+        self.best_step: Optional[int] = None   # the step of the model a run ended with, if restored
 
     def set_objective(self, objective: Objective) -> None:
         """Fit ``objective`` from the next step on (its extra parameters get an Adam of their own)."""
@@ -160,7 +165,6 @@ class Trainer:
         level = self.level()
         index = self._next_view()
         cam, img = self.data.view(index, level)
-        target, weight = self.objective.target(index, img)
         for g in self.optimizer.param_groups:
             if g["name"] == "means":
                 g["lr"] = self._means_lr()
@@ -172,7 +176,8 @@ class Trainer:
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
                      background=torch.tensor(c.background, dtype=torch.float32), compiled=c.compiled,
                      gather=rg)
-        loss = training_loss(out.rgb, target, c.lambda_dssim, weight)
+        target, weight = self.objective.target(index, img, out.rgb.detach())
+        loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight)
         loss.backward()
         rg.write()   # .grad of the parameters: the visible rows' gradients, zero elsewhere
         if self.densifying() and out.means2d.grad is not None:
@@ -185,6 +190,7 @@ class Trainer:
         self.step += 1
         if self.densifying() and self.step >= c.densify_from and self.step % c.densify_every == 0:
             self.densify()
+            self.last_densify = self.step
         if (c.opacity_reset_every and self.step < c.densify_until and self.step % c.opacity_reset_every == 0
                 and not self.growth_frozen):
             density.reset_opacity(self.params, self.optimizer)
@@ -261,16 +267,20 @@ class Trainer:
 
     # --- evaluation ---------------------------------------------------------------------
     @torch.no_grad()
-    def render_view(self, index: int) -> torch.Tensor:
-        """(H, W, 3) render of camera ``index`` at the training resolution (not clamped)."""
+    def render_output(self, index: int):
+        """The whole :class:`~..render.rasterizer.RenderOutput` (rgb, alpha, depth, ...) of
+        camera ``index`` at the training resolution."""
         cam, _ = self.data.view(index, 1)
         viewmat, K = view_tensors(cam, self.device)
         p = self.params
-        out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
-                     viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                     background=torch.tensor(self.cfg.background, dtype=torch.float32),
-                     compiled=self.cfg.compiled)
-        return out.rgb
+        return render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
+                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
+                      background=torch.tensor(self.cfg.background, dtype=torch.float32),
+                      compiled=self.cfg.compiled)
+
+    def render_view(self, index: int) -> torch.Tensor:
+        """(H, W, 3) render of camera ``index`` at the training resolution (not clamped)."""
+        return self.render_output(index).rgb
 
     def heldout_ids(self, ids: Optional[list[int]] = None) -> list[int]:
         """The held-out views a score is taken on (``ids``, default all, cut to ``eval_views``)."""
@@ -291,22 +301,25 @@ class Trainer:
     @torch.no_grad()
     def evaluate(self, ids: Optional[list[int]] = None) -> dict:
         """Mean PSNR (dB) and SSIM over held-out views at the training resolution: ``psnr`` /
-        ``ssim`` against the held-out images (what the run decides on), and ``psnr_gt`` /
-        ``ssim_gt`` against the ground truth where the survey has one."""
+        ``ssim`` against the held-out images (what the run decides on), ``psnr_gt`` /
+        ``ssim_gt`` against the ground truth where the survey has one, and ``psnr_captured``
+        against the held-out photos as captured (what ``keep_best`` decides on)."""
         ids = self.heldout_ids(ids)
         if not ids:
             return {}
-        ps, ss, pg, sg = [], [], [], []
+        ps, ss, pg, sg, pc = [], [], [], [], []
         for i in ids:
             rgb = self.render_view(i).clamp(0, 1)
-            ref = self.objective.reference(i, self.data.view(i, 1)[1], rgb)
+            photo = self.data.view(i, 1)[1]
+            ref = self.objective.reference(i, photo, rgb)
             ps.append(psnr(rgb, ref))
+            pc.append(ps[-1] if ref is photo else psnr(rgb, photo))
             ss.append(float(ssim(rgb, ref)))
             gt = self.data.gt_view(i)
             if gt is not None:
                 pg.append(psnr(rgb, gt))
                 sg.append(float(ssim(rgb, gt)))
-        out = {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss))}
+        out = {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "psnr_captured": float(np.mean(pc))}
         if pg:
             out.update(psnr_gt=float(np.mean(pg)), ssim_gt=float(np.mean(sg)))
         return out
@@ -318,9 +331,11 @@ class Trainer:
         if value is None:
             return
         self.history.append({"iteration": self.step, "psnr": value, "ssim": metrics["ssim"],
-                             **{k: metrics[k] for k in ("psnr_gt", "ssim_gt") if k in metrics},
+                             **{k: metrics[k] for k in ("psnr_gt", "ssim_gt", "psnr_captured") if k in metrics},
                              "gaussians": int(self.params["means"].shape[0]), "sh_degree": self.sh_degree,
                              "elapsed": round(self.elapsed, 2), "phase": self.phase})
+        if c.keep_best:
+            self._consider_best(metrics["psnr_captured"])
         if value > self.best_psnr + c.plateau_min_gain:
             self.best_psnr, self.since_best = value, 0
         else:
@@ -356,6 +371,29 @@ class Trainer:
                 and self.sh_state["trial"] is None):
             self.done_reason = "held-out PSNR plateau"
 
+    def _consider_best(self, score: float) -> None:
+        """Remember the model if it scores best so far on the held-out photos as captured.
+        Evaluations within half a densification interval after a densification are not
+        considered: new Gaussians have not yet settled."""
+        c = self.cfg
+        if self.last_densify >= 0 and self.step - self.last_densify < c.densify_every // 2:
+            return
+        if self.best is None or score > self.best["score"]:
+            self.best = {"score": score, "step": self.step, **self.snapshot()}
+
+    def restore_best(self) -> Optional[int]:
+        """``keep_best``: at the end of a run, go back to the best model unless the current one
+        scores as well; returns (and records in ``best_step``) the step the model was taken
+        at, or None when nothing changed."""
+        if not self.cfg.keep_best or self.best is None or self.best["step"] == self.step:
+            return None
+        score_now = self.heldout_psnr()
+        if score_now is not None and score_now >= self.best["score"]:
+            return None
+        self.restore(self.best)
+        self.best_step = self.best["step"]
+        return self.best_step
+
     # --- the loop -----------------------------------------------------------------------
     def run(self, on_progress: Optional[Callable[[Progress], None]] = None,
             should_stop: Optional[Callable[[], bool]] = None,
@@ -364,6 +402,7 @@ class Trainer:
         reason = self.train_until(on_progress=on_progress, should_stop=should_stop, on_checkpoint=on_checkpoint,
                                   checkpoint_every_s=checkpoint_every_s)
         if reason != "stopped":
+            self.restore_best()
             self.finish(on_progress)
         return reason
 
@@ -447,6 +486,9 @@ class Trainer:
             "sh_degree": self.sh_degree, "sh_state": self.sh_state, "best_psnr": self.best_psnr,
             "since_best": self.since_best, "reset_done": self.reset_done, "done_reason": self.done_reason,
             "objective_optimizer": None if self.objective_optimizer is None else self.objective_optimizer.state_dict(),
+            "last_densify": self.last_densify,
+            "best": None if self.best is None else {
+                **self.best, "params": {n: v.detach().cpu() for n, v in self.best["params"].items()}},
         }
 
     def load_state_dict(self, s: dict) -> None:
@@ -469,6 +511,8 @@ class Trainer:
         self.sh_degree, self.sh_state = s["sh_degree"], s["sh_state"]
         self.best_psnr, self.since_best = s["best_psnr"], s["since_best"]
         self.reset_done = s["reset_done"]
+        self.last_densify = s.get("last_densify", -1)   # checkpoints before keep_best have neither
+        self.best = s.get("best")
         if self.objective_optimizer is not None and s.get("objective_optimizer") is not None:
             self.objective_optimizer.load_state_dict(s["objective_optimizer"])
         # limits are checked again against this run's settings (a resume may raise them)

@@ -1,0 +1,50 @@
+"""Where the caustics go: per Gaussian, how many training views carry it.
+
+A Gaussian's blending weight in a view is ``sum over pixels of alpha_i T_i`` (in pixels): the
+share of the view's colour it supplies. It is read off the gradient of the render's sum
+with respect to the Gaussian's DC colour coefficient, which is ``SH_C0 * sum alpha_i T_i`` per
+channel (colour = 0.5 + SH is linear in it, clamped only where it would go negative). A
+Gaussian "carries" a view where that weight is at least ``min_weight`` pixels. A Gaussian
+carried by few views has its colour fitted to the light of those few photos: with moving
+caustics, to their caustics (docs/caustics.md).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..model.gaussians import SH_C0
+from ..render.rasterizer import render
+from ..train.data import view_tensors
+
+
+def blending_weights(trainer, index: int) -> torch.Tensor:
+    """(N,) blending weight (pixels) of every Gaussian in training view ``index`` at the
+    training resolution."""
+    cam, _ = trainer.data.view(index, 1)
+    viewmat, K = view_tensors(cam, trainer.device)
+    p = {n: v.detach() for n, v in trainer.params.items()}
+    dc = p["sh_dc"].clone().requires_grad_(True)
+    k = p["sh_rest"].shape[1] if trainer.sh_degree else 0
+    out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (dc, p["sh_rest"][:, :k]),
+                 viewmat, K, cam.width, cam.height, sh_degree=trainer.sh_degree, compiled=False)
+    out.rgb.sum().backward()
+    return dc.grad[:, 0, :].mean(-1) / SH_C0
+
+
+def view_support(trainer, min_weight: float = 1.0) -> np.ndarray:
+    """(N,) int: the number of training views that carry each Gaussian."""
+    count = torch.zeros(trainer.params["means"].shape[0], dtype=torch.int64)
+    for i in trainer.data.train_ids:
+        count += (blending_weights(trainer, i) >= min_weight).cpu()
+    return count.numpy()
+
+
+def support_summary(support: np.ndarray) -> dict:
+    """Median views per Gaussian, the share carried by at most 2 views and by none, and the
+    histogram (views -> Gaussians) up to 10 views (the last bin holds 10 or more)."""
+    if support.size == 0:
+        return {}
+    hist = np.bincount(np.minimum(support, 10), minlength=11)
+    return {"median_views": float(np.median(support)), "share_le2": float(np.mean(support <= 2)),
+            "share_none": float(np.mean(support == 0)), "histogram": [int(h) for h in hist]}
