@@ -93,6 +93,18 @@ def add_train_arguments(p) -> None:
     g.add_argument("--max-recurrences", type=int, default=None)
     g.add_argument("--recurrence-tol", type=float, default=None,
                    help="recgs: stop when the relative change of C falls below this")
+    g.add_argument("--estimator", choices=["lowpass", "consensus"], default=None,
+                   help="recgs: C from the low-passed residual (the paper, default) or from the multi-view "
+                        "consensus of the photos warped with the model's depth")
+    g.add_argument("--consensus-stat", choices=["mean", "median", "min", "quantile"], default=None,
+                   help="consensus: the per-pixel statistic over the views that see it (default mean)")
+    g.add_argument("--robust-k", type=float, default=None,
+                   help="recgs: leave out of the loss pixels brighter than the render by more than k robust "
+                        "sigmas (default 1.5); 0 = the paper's plain loss")
+    g.add_argument("--gain-restore", choices=["on", "off"], default=None,
+                   help="recgs with trimming: rescale the colours to the photos' mean light at the end (default on)")
+    p.add_argument("--keep-last", action="store_true",
+                   help="end with the last model, not the one that scored best on the held-out photos")
 
 
 def _parse_budget(text: str):
@@ -147,6 +159,7 @@ def run_train(args) -> int:
     from .core.caustics.build import make_method
     from .core.caustics.config import CausticConfig
     from .core.io.ply import read_gaussian_ply, write_gaussian_ply
+    from .core.outputs.diagnostics import support_summary, view_support
     from .core.outputs.exports import write_outputs
     from .core.outputs.report import write_run_report
     from .core.train.checkpoint import load_checkpoint, save_checkpoint
@@ -171,11 +184,14 @@ def run_train(args) -> int:
             cfg = preset(args.preset, iterations=args.iterations, max_minutes=args.max_minutes,
                          downscale=args.downscale, sh_degree=args.sh_degree, seed=args.seed,
                          device=args.device, holdout_every=args.holdout_every,
-                         budget=_parse_budget(args.budget), compiled=False if args.eager else None)
+                         budget=_parse_budget(args.budget), compiled=False if args.eager else None,
+                         keep_best=False if args.keep_last else None)
             caustic = dict(mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
                            caustic_k=args.caustic_k, caustic_model=args.caustic_model, warmup=args.warmup,
                            recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,
-                           recurrence_tol=args.recurrence_tol)
+                           recurrence_tol=args.recurrence_tol, robust_k=args.robust_k,
+                           estimator=args.estimator, consensus_stat=args.consensus_stat,
+                           gain_restore=None if args.gain_restore is None else args.gain_restore == "on")
             ccfg = CausticConfig(**{k: v for k, v in caustic.items() if v is not None})
         init = read_gaussian_ply(args.init_ply) if args.init_ply and not args.resume else None
         gt = args.gt_images if args.gt_images is not None else default_gt_dir(args.scene_dir)
@@ -233,12 +249,14 @@ def run_train(args) -> int:
         print(f"stopped by {stop['signal']} at iteration {trainer.step}; checkpoint saved", file=sys.stderr)
         return 0
     final = trainer.evaluate()
+    support = support_summary(view_support(trainer))
     metrics = {
         "status": "done", "reason": reason, "iterations": trainer.step,
         "seconds": round(trainer.elapsed, 2), "gaussians": int(trainer.params["means"].shape[0]),
         "sh_degree": trainer.sh_degree, "test_views": [trainer.data.scene.cameras[i].name for i in trainer.data.test_ids],
         "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
-        "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"), **outputs,
+        "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"),
+        "psnr_test_captured": final.get("psnr_captured"), "view_support": support, **outputs,
         "history": trainer.history, "recurrences": [], **method.summary(),
         "config": {**asdict(trainer.cfg), **asdict(ccfg)},
     }

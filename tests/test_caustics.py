@@ -377,3 +377,171 @@ def test_bound_tool_refits_colours_and_recovers_the_caustics(caustic_scene):
     rec = bound(caustic_scene, gt_ply, targets="captured", rounds=2, **kw)
     assert rec[1]["heldout"] < rec[0]["heldout"] - 5, rec  # the photos' caustics, averaged, got in
     assert rec[-1]["train"] > captured + 5, (rec, captured)
+
+
+# --- robust weighting, the normalised low-pass and the gain restore ---------------------------
+
+def test_trim_weights_drop_exactly_the_bright_tail():
+    from recgs_addon.core.caustics.robust import MAD_TO_SIGMA, trim_weights
+
+    g = torch.Generator().manual_seed(0)
+    render = torch.rand(40, 50, 3, generator=g)
+    r = torch.randn(40, 50, generator=g) * 0.05
+    r[5, 7], r[20, 30], r[33, 2] = 0.5, 0.3, -0.6        # two bright outliers, one dark one
+    target = render + r.unsqueeze(-1)
+    w = trim_weights(target, render, 1.5)
+    s = MAD_TO_SIGMA * float(r.abs().median())
+    assert torch.equal(w, (r <= 1.5 * s).float())
+    assert w[5, 7] == 0 and w[20, 30] == 0 and w[33, 2] == 1   # one-sided: darker pixels count
+    assert 0.03 < 1 - float(w.mean()) < 0.12                     # ~6.7 % of a normal sample's tail
+    # a perfect fit: the scale's floor keeps every pixel rather than trimming half of them
+    assert bool(trim_weights(render, render, 1.5).all())
+
+
+def test_normalised_lowpass_ignores_the_pixels_that_do_not_count():
+    from recgs_addon.core.caustics.robust import normalised_lowpass
+
+    h, w = 48, 64
+    smooth = 0.1 * wave(h, w, 1, 2, 0.3) + 0.05 * wave(h, w, 2, -1)
+    lines = torch.zeros(h, w, 3)
+    lines[::8] = 0.6                                          # bright lines: high and low frequencies
+    weight = torch.ones(h, w)
+    weight[::8] = 0.0
+    plain = caustics.lowpass(smooth + lines, 5)
+    robust = normalised_lowpass(smooth + lines, weight, 5, caustics.lowpass)
+    assert torch.allclose(normalised_lowpass(smooth, None, 5, caustics.lowpass), caustics.lowpass(smooth, 5))
+    err_plain = float((plain - smooth).abs().mean())
+    err_robust = float((robust - smooth).abs().mean())
+    assert err_robust < 0.2 * err_plain, (err_robust, err_plain)
+
+
+@pytest.mark.parametrize("deg", [0, 1])
+def test_gain_scales_the_rendered_colours(deg):
+    from recgs_addon.core.caustics.robust import apply_gain
+    from recgs_addon.core.render.rasterizer import render
+
+    rng = np.random.default_rng(deg)
+    n = 40
+    p = {"means": torch.tensor(rng.uniform(-0.5, 0.5, (n, 3)) * [1, 1, 0.1] + [0, 0, 3], dtype=torch.float64),
+         "log_scales": torch.full((n, 3), np.log(0.08), dtype=torch.float64),
+         "quats": torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float64),
+         "logit_opacities": torch.full((n,), 1.0, dtype=torch.float64),
+         "sh_dc": torch.tensor(rng.uniform(-0.5, 0.8, (n, 1, 3)), dtype=torch.float64),
+         "sh_rest": torch.tensor(rng.normal(0, 0.05, (n, 3, 3)) if deg else np.zeros((n, 0, 3)), dtype=torch.float64)}
+    K = torch.tensor([[40.0, 0, 24], [0, 40.0, 18], [0, 0, 1]], dtype=torch.float64)
+    view = torch.eye(4, dtype=torch.float64)
+
+    def rgb():
+        return render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (p["sh_dc"], p["sh_rest"]),
+                      view, K, 48, 36, sh_degree=deg, compiled=False).rgb
+
+    before = rgb()
+    gain = torch.tensor([1.2, 0.9, 1.05])
+    apply_gain(p, gain)
+    assert torch.allclose(rgb(), before * gain.double(), atol=1e-9)
+
+
+def test_recgs_with_trimming_restores_the_mean_light(caustic_scene):
+    """Trimming fits a darker model; the gain restore brings the renders of the training
+    views back to the photos' mean light, and the run keeps its best held-out model."""
+    from recgs_addon.core.caustics.robust import colour_gain
+
+    tr = make(caustic_scene, robust_k=1.5, iterations=700)
+    assert not tr.trainer.objective.use_ssim
+    tr.run()
+    assert tr.gain is not None and all(0.8 < g < 1.5 for g in tr.gain)
+    after = colour_gain((tr.data.view(i, 1)[1], tr.trainer.render_view(i)) for i in tr.data.train_ids)
+    assert torch.allclose(after, torch.ones(3), atol=0.01), after
+    cleaned = np.mean([psnr(tr.decaustic_image(i).clamp(0, 1), tr.data.gt_view(i)) for i in tr.data.train_ids])
+    captured = np.mean([psnr(tr.data.view(i)[1], tr.data.gt_view(i)) for i in tr.data.train_ids])
+    assert cleaned > captured + 3.0, (captured, cleaned)
+
+
+# --- multi-view consensus targets -------------------------------------------------------------
+
+def _views_of(scene, gaussians, folder="images"):
+    from recgs_addon.core.io.colmap import load_scene
+    from recgs_addon.core.render.rasterizer import render
+
+    sc = load_scene(scene, image_dir=scene / folder)
+    t = {k: torch.tensor(getattr(gaussians, k)) for k in ("means", "log_scales", "quats", "logit_opacities", "sh")}
+    views = []
+    for cam in sc.cameras:
+        vm, K = torch.tensor(cam.viewmat, dtype=torch.float32), torch.tensor(cam.K, dtype=torch.float32)
+        with torch.no_grad():
+            o = render(t["means"], t["log_scales"], t["quats"], t["logit_opacities"], t["sh"], vm, K,
+                       cam.width, cam.height, compiled=False)
+        views.append(dict(photo=torch.from_numpy(sc.load_image(cam)), depth=o.depth, alpha=o.alpha, viewmat=vm, K=K))
+    return views
+
+
+def test_warping_with_the_true_depth_reproduces_the_view(caustic_scene):
+    """Clean photos of the true scene, warped into view 0 with the true model's depth, agree
+    with view 0's own photo where they are valid."""
+    from recgs_addon.core.caustics import consensus as cs
+    from recgs_addon.core.io.ply import read_gaussian_ply
+
+    views = _views_of(caustic_scene, read_gaussian_ply(caustic_scene.parent / "gt.ply"), "clean")
+    for v in views:
+        v["surface"] = v["depth"] / v["alpha"].clamp_min(1e-6)
+    pts = cs.backproject(views[0]["surface"], views[0]["viewmat"], views[0]["K"])
+    grid, z = cs.project(pts, views[0])                      # back into its own view: the pixel centres
+    h, w = views[0]["alpha"].shape
+    cover = views[0]["alpha"] >= 0.9
+    assert cover.float().mean() > 0.2
+    u = (grid[0, ..., 0] + 1) * w / 2
+    assert torch.allclose(u[cover], (torch.arange(w) + 0.5).expand(h, w)[cover], atol=1e-3)
+    assert torch.allclose(z[cover], views[0]["surface"][cover], rtol=1e-5)
+    errs, unwarped = [], []
+    for j in range(1, len(views)):
+        samp, ok = cs.warp(pts, views[j], 0.03, 0.5)
+        ok &= cover
+        if ok.sum() > 50:
+            errs.append(float((samp[ok] - views[0]["photo"][ok]).abs().mean()))
+            unwarped.append(float((views[j]["photo"][ok] - views[0]["photo"][ok]).abs().mean()))
+    # small 48x36 views of semi-transparent Gaussians: bilinear resampling and the expected
+    # depth of a blend leave a little; the same pixels without the warp differ several times more
+    assert len(errs) >= 3 and errs[0] < 0.02 and np.median(errs) < 0.04, errs
+    assert np.mean(errs) < 0.75 * np.mean(unwarped), (errs, unwarped)
+
+
+def test_robust_statistics_match_numpy():
+    from recgs_addon.core.caustics.consensus import robust_stat
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(5, 4, 6, 3, generator=g)
+    valid = torch.rand(5, 4, 6, generator=g) > 0.4
+    valid[0] = True
+    xn = np.where(valid.numpy()[..., None], x.numpy(), np.nan)
+    assert np.allclose(robust_stat(x, valid, "mean").numpy(), np.nanmean(xn, 0), atol=1e-6)
+    assert np.allclose(robust_stat(x, valid, "min").numpy(), np.nanmin(xn, 0), atol=1e-6)
+    assert np.allclose(robust_stat(x, valid, "quantile", 0.25).numpy(), np.nanquantile(xn, 0.25, axis=0), atol=1e-6)
+    med = robust_stat(x, valid, "median").numpy()
+    lo = np.sort(np.where(np.isnan(xn), np.inf, xn), 0)
+    n = valid.numpy().sum(0)[..., None]
+    assert np.allclose(med, np.take_along_axis(lo, ((n - 1) // 2)[None], 0)[0], atol=1e-6)  # the lower middle
+    with pytest.raises(ValueError, match="statistic"):
+        robust_stat(x, valid, "mode")
+
+
+def test_lower_envelope_with_gain_recovers_sparse_bright_light():
+    """A surface under sparse bright lines (light 0.6 + lines up to 2.8, mean 1 per shot, as
+    the voronoi surveys), seen n times: the mean of n shots keeps much of each shot's lines,
+    the lower envelope times its per-count gain is near the surface under the mean light."""
+    from recgs_addon.core.caustics.consensus import apply_count_gain, gain_by_count, robust_stat
+
+    g = torch.Generator().manual_seed(4)
+    h, w, views = 60, 80, 4
+    albedo = 0.2 + 0.6 * torch.rand(h, w, 3, generator=g)
+    lines = (torch.rand(views, h, w, generator=g) < 0.18).float()
+    light = 0.6 + lines * (0.4 / 0.18)                      # mean 1 over the shots
+    shots = albedo * light.unsqueeze(-1)
+    valid = torch.ones(views, h, w, dtype=torch.bool)
+    truth = albedo * light.mean()
+    mean = robust_stat(shots, valid, "mean")
+    env = robust_stat(shots, valid, "min")
+    counts = valid.sum(0)
+    gains = gain_by_count([shots[i] for i in range(views)], [env] * views, [counts] * views)
+    restored = apply_count_gain(env, counts, gains)
+    assert abs(float(gains[views][0]) - float(light.mean()) / 0.6) < 0.05
+    assert psnr(restored.clamp(0, 1), truth) > psnr(mean.clamp(0, 1), truth) + 6

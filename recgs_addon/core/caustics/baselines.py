@@ -39,7 +39,7 @@ class Filter2D(Method):
         return self.targets.images[index]
 
     def summary(self) -> dict:
-        return {"caustic_k": self.k}
+        return {**super().summary(), "caustic_k": self.k}
 
 
 class _FieldObjective(Objective):
@@ -48,7 +48,7 @@ class _FieldObjective(Objective):
     def __init__(self, fields: "CausticFields", lr: float, compensate):
         self.fields, self.lr, self._compensate = fields, lr, compensate
 
-    def target(self, index, image):
+    def target(self, index, image, render):
         return image - self.fields.field(index, image.shape[0], image.shape[1]), None
 
     def reference(self, index, image, render):
@@ -75,7 +75,7 @@ class Joint(Method):
         return image - self.fields.field(index, image.shape[0], image.shape[1])
 
     def summary(self) -> dict:
-        return {"caustic_k": self.k}
+        return {**super().summary(), "caustic_k": self.k}
 
     def state_dict(self) -> dict:
         s = super().state_dict()

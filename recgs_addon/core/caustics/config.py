@@ -31,9 +31,14 @@ class CausticConfig:
     max_recurrences: int = 40
     recurrence_tol: float = 0.1          # stop when mean |dC| / mean |C| falls below this
     caustic_floor: float = 0.01          # recgs: C is dropped when mean |C| is below this (1 % of full scale)
+    estimator: str = "lowpass"           # recgs: C = lowpass(I - render) (paper) | consensus: I - multi-view consensus
+    consensus_stat: str = "mean"         # consensus: mean | median | min | quantile (of the views that see a pixel)
+    consensus_q: float = 0.25            # consensus_stat quantile: which quantile
+    robust_k: float = 1.5                # recgs: trim pixels brighter than the render by > k robust sigmas; 0 = off (the paper)
+    gain_restore: bool = True            # recgs with trimming: rescale colours so renders keep the photos' mean light
 
     #: Settings added since a release, with the value that reproduces runs saved before them.
-    _BEFORE = {"caustic_dc": True}
+    _BEFORE = {"caustic_dc": True, "robust_k": 0.0, "gain_restore": False, "estimator": "lowpass"}
 
     @classmethod
     def from_dict(cls, d: dict) -> "CausticConfig":
@@ -51,5 +56,11 @@ class CausticConfig:
             raise RecGSError(f"caustic filter size must be a positive odd number (or 0 = auto), got {self.caustic_k}")
         if self.caustic_model not in ("additive", "multiplicative"):
             raise RecGSError(f"unknown caustic model {self.caustic_model!r} (additive or multiplicative)")
+        if self.estimator not in ("lowpass", "consensus"):
+            raise RecGSError(f"unknown caustic estimator {self.estimator!r} (lowpass or consensus)")
+        if self.estimator == "consensus" and self.caustic_model != "additive":
+            raise RecGSError("the consensus estimator makes additive caustic maps (caustic model additive)")
+        if self.robust_k < 0:
+            raise RecGSError(f"robust trimming k must be >= 0 (0 = off), got {self.robust_k}")
         if self.recurrence_steps < 1:
             raise RecGSError(f"recurrence steps must be at least 1, got {self.recurrence_steps}")

@@ -10,22 +10,26 @@ light without adding any, and a DC term would carry the model's brightness error
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 
 from .fft_filter import lowpass
+from .robust import normalised_lowpass
 
 #: Offset (in [0, 1] intensity) inside the logarithms of the multiplicative model.
 LOG_EPS = 0.02
 
 
 def estimate_caustics(image: torch.Tensor, render: torch.Tensor, k: int, model: str = "additive",
-                      dc: bool = False) -> torch.Tensor:
-    """Caustic estimate (H, W, 3) of a view: the ``k x k`` low-pass of its residual."""
+                      dc: bool = False, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Caustic estimate (H, W, 3) of a view: the ``k x k`` low-pass of its residual, taken over
+    the pixels that count where ``weight`` (H, W) is given (normalised convolution)."""
     if model == "multiplicative":
         resid = torch.log(image + LOG_EPS) - torch.log(render.clamp_min(0) + LOG_EPS)
     else:
         resid = image - render
-    est = lowpass(resid, k)
+    est = normalised_lowpass(resid, weight, k, lowpass)
     if not dc:
         est = est - est.mean(dim=(0, 1), keepdim=True)
     return est

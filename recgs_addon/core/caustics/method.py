@@ -40,7 +40,7 @@ class Method:
 
     def summary(self) -> dict:
         """What the method adds to a run's metrics."""
-        return {}
+        return {"best_step": self.trainer.best_step}
 
     def state_dict(self) -> dict:
         s = self.trainer.state_dict()

@@ -40,12 +40,14 @@ from typing import Callable, Optional
 
 import torch
 
-from ..train.objective import FixedTargets
 from ..train.trainer import Progress, Trainer
 from . import fft_filter
+from ..train.data import view_tensors
 from .config import CausticConfig
+from .consensus import consensus_targets
 from .estimate import estimate_caustics, remove_caustics
 from .method import Method
+from .robust import TrimmedTargets, apply_gain, colour_gain, trim_weights
 
 PLATEAU = "held-out PSNR plateau"
 
@@ -55,9 +57,10 @@ class RecGS(Method):
         super().__init__(trainer, ccfg)
         self.k: Optional[int] = ccfg.caustic_k or None
         self.eval_k = ccfg.caustic_k or fft_filter.DEFAULT_K
-        self.targets = FixedTargets(reference=lambda image, render: self._decaustic(
+        self.targets = TrimmedTargets(ccfg.robust_k, reference=lambda image, render: self._decaustic(
             image, self._estimate(image, render, self.eval_k)))
         trainer.set_objective(self.targets)
+        self.gain: Optional[list] = None    # the colour gain applied at the end (gain_restore)
         self.maps: dict[int, torch.Tensor] = {}  # C or log-gain per training view (full res)
         self.recurrence = 0
         self.rec_history: list[dict] = []
@@ -83,7 +86,9 @@ class RecGS(Method):
         return remove_caustics(image, cmap, self.ccfg.caustic_model)
 
     def _estimate(self, image: torch.Tensor, rgb: torch.Tensor, k: int) -> torch.Tensor:
-        return estimate_caustics(image, rgb, k, self.ccfg.caustic_model, self.ccfg.caustic_dc)
+        """C of a view from its photo and render, over the pixels trimming keeps."""
+        w = trim_weights(image, rgb, self.targets.k) if self.targets.k else None
+        return estimate_caustics(image, rgb, k, self.ccfg.caustic_model, self.ccfg.caustic_dc, w)
 
     def caustic_map(self, index: int) -> torch.Tensor:
         """Additive caustic estimate ``C = I - (caustic-free I)`` of a training view (full res)."""
@@ -109,10 +114,13 @@ class RecGS(Method):
         """One re-estimation of C for every training view; updates the targets."""
         tr = self.trainer
         ids = self.data.train_ids
-        renders = {i: tr.render_view(i) for i in ids}
-        if self.k is None:
-            self.k = fft_filter.choose_k([self.data.view(i, 1)[1] - renders[i] for i in ids])
-        new = {i: self._estimate(self.data.view(i, 1)[1], renders[i], self.k) for i in ids}
+        if self.ccfg.estimator == "consensus":
+            new = self._consensus_maps()
+        else:
+            renders = {i: tr.render_view(i) for i in ids}
+            if self.k is None:
+                self.k = fft_filter.choose_k([self.data.view(i, 1)[1] - renders[i] for i in ids])
+            new = {i: self._estimate(self.data.view(i, 1)[1], renders[i], self.k) for i in ids}
         old = [self.maps.get(i, torch.zeros_like(new[i])) for i in ids]
         change = fft_filter.caustic_change([new[i] for i in ids], old)
         self._set_maps(new)
@@ -122,6 +130,19 @@ class RecGS(Method):
                  "c_change": change, "mean_abs_c": level, "k": self.k}
         self.rec_history.append(entry)
         return entry
+
+    def _consensus_maps(self) -> dict[int, torch.Tensor]:
+        """C = I - (gain-restored multi-view consensus of the photos), with the model's depth
+        (``consensus.py``)."""
+        tr, ids = self.trainer, self.data.train_ids
+        views = []
+        for i in ids:
+            cam, photo = self.data.view(i, 1)
+            out = tr.render_output(i)
+            viewmat, K = view_tensors(cam, tr.device)
+            views.append(dict(photo=photo, depth=out.depth, alpha=out.alpha, viewmat=viewmat, K=K))
+        targets, _, _ = consensus_targets(views, self.ccfg.consensus_stat, self.ccfg.consensus_q)
+        return {i: v["photo"] - t for i, v, t in zip(ids, views, targets)}
 
     def _due(self) -> bool:
         """Work is due before the next step: the warm-up is over, or a recurrence is due."""
@@ -217,8 +238,13 @@ class RecGS(Method):
         self._set_maps({})  # targets = the captured images
         self.misses = 0
         self.drop_reason = why
+        self._plain_loss()
         self.stage, self.next_due = "settle", None
         self.trainer.restart_plateau(forget_best=True)
+
+    def _plain_loss(self) -> None:
+        """Without C, no trimming either: the run ends as plain 3DGS."""
+        self.targets.k = 0.0
 
     @property
     def dropped(self) -> bool:
@@ -259,8 +285,21 @@ class RecGS(Method):
             harm = self._harm(tr.heldout_psnr())
             if harm:
                 self._drop(harm)
+        tr.restore_best()
+        if self.ccfg.robust_k and self.ccfg.gain_restore:
+            self.restore_gain()
         tr.finish(progress)
         return reason
+
+    @torch.no_grad()
+    def restore_gain(self) -> list:
+        """Scale the model's colours so its renders of the training views hold the photos'
+        mean light (trimming fits a darker model); returns the per-channel gain."""
+        tr = self.trainer
+        g = colour_gain((self.data.view(i, 1)[1], tr.render_view(i)) for i in self.data.train_ids)
+        apply_gain(tr.params, g)
+        self.gain = [round(float(x), 4) for x in g]
+        return self.gain
 
     def _annotate(self, p: Progress) -> Progress:
         if self.rec_history:
@@ -268,8 +307,8 @@ class RecGS(Method):
         return p
 
     def summary(self) -> dict:
-        return {"caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,
-                "psnr_heldout_plain": (self.plain or {}).get("score")}
+        return {**super().summary(), "caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,
+                "psnr_heldout_plain": (self.plain or {}).get("score"), "colour_gain": self.gain}
 
     # --- checkpoints -----------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -291,4 +330,6 @@ class RecGS(Method):
         self.plain = cs.get("plain")
         # checkpoints written before the do-no-harm tests have none of these
         self.misses, self.drop_reason = cs.get("misses", 0), cs.get("drop_reason")
+        if self.dropped:
+            self._plain_loss()
         self._set_maps({int(i): m.to(self.trainer.device) for i, m in cs["maps"].items()})
