@@ -16,6 +16,11 @@ runs ``--rounds`` RecGS recurrences on the colours (``C = lowpass_k(I - render)`
 mean, 200 steps against ``I - C`` each). It prints held-out PSNR against the ground truth
 (``SCENE_DIR/clean``) after each stage, and the PSNR of the caustic-free training images.
 Every 8th view by sorted name is held out, as in training.
+
+``--estimator consensus --stat S`` replaces the rounds by one refit to the multi-view
+consensus targets (core/caustics/consensus.py, statistic S of the photos warped with the
+frozen geometry's depth, gain restored per sample count): how far colours from more than
+each point's own photos' average can go with the same geometry.
 """
 from __future__ import annotations
 
@@ -30,6 +35,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recgs_addon.core.caustics import fft_filter as caustics  # noqa: E402
+from recgs_addon.core.caustics.consensus import consensus_targets  # noqa: E402
 from recgs_addon.core.io.colmap import load_scene  # noqa: E402
 from recgs_addon.core.train.losses import psnr  # noqa: E402
 from recgs_addon.core.io.ply import read_gaussian_ply  # noqa: E402
@@ -41,7 +47,7 @@ ROUND_STEPS = 200
 
 def bound(scene_dir: Path, model: Path, *, targets: str = "captured", loss: str = "l2", steps: int = 1500,
           rounds: int = 5, k: int = 25, lr: float = 0.01, holdout_every: int = 8,
-          compiled: bool | None = None, log=print) -> list[dict]:
+          compiled: bool | None = None, log=print, estimator: str = "lowpass", stat: str = "mean") -> list[dict]:
     """Refit the colours of ``model``'s frozen Gaussians, then run ``rounds`` RecGS recurrences
     on them. Returns one record per stage: ``stage``, ``heldout`` (mean held-out PSNR against
     ``scene_dir/clean``, dB) and, for the rounds, ``train`` (PSNR of the caustic-free training
@@ -97,6 +103,17 @@ def bound(scene_dir: Path, model: Path, *, targets: str = "captured", loss: str 
     report("as given")
     fit(steps, photo)
     report("refit")
+    if estimator == "consensus":
+        with torch.no_grad():
+            outs = {i: render(means, log_scales, quats, logit_op, dc, *view[i], cams[i].width, cams[i].height,
+                              sh_degree=0, compiled=compiled) for i in train_ids}
+            views = [dict(photo=photo[i], depth=outs[i].depth, alpha=outs[i].alpha, viewmat=view[i][0], K=view[i][1])
+                     for i in train_ids]
+            tg, _, _ = consensus_targets(views, stat)
+            cmaps = {i: photo[i] - x for i, x in zip(train_ids, tg)}
+        fit(steps, {i: photo[i] - cmaps[i] for i in train_ids})
+        report(f"consensus {stat}", cmaps)
+        return records
     for r in range(rounds):
         with torch.no_grad():
             cmaps = {}
@@ -119,10 +136,13 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=25, help="low-pass block size")
     ap.add_argument("--lr", type=float, default=0.01)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--estimator", choices=["lowpass", "consensus"], default="lowpass")
+    ap.add_argument("--stat", choices=["mean", "median", "min", "quantile"], default="mean",
+                    help="consensus: the per-pixel statistic")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     bound(args.scene, args.model, targets=args.targets, loss=args.loss, steps=args.steps, rounds=args.rounds,
-          k=args.k, lr=args.lr, log=lambda m: print(m, flush=True))
+          k=args.k, lr=args.lr, log=lambda m: print(m, flush=True), estimator=args.estimator, stat=args.stat)
 
 
 if __name__ == "__main__":

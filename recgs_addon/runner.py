@@ -100,7 +100,7 @@ def add_train_arguments(p) -> None:
                    help="consensus: the per-pixel statistic over the views that see it (default mean)")
     g.add_argument("--robust-k", type=float, default=None,
                    help="recgs: leave out of the loss pixels brighter than the render by more than k robust "
-                        "sigmas (default 1.5); 0 = the paper's plain loss")
+                        "sigmas (1.5 in the trials; default 0 = the paper's plain loss, see docs/caustics.md)")
     g.add_argument("--gain-restore", choices=["on", "off"], default=None,
                    help="recgs with trimming: rescale the colours to the photos' mean light at the end (default on)")
     p.add_argument("--keep-last", action="store_true",

@@ -350,10 +350,12 @@ def test_benchmark_report_table_plots_and_gap(tmp_path):
 
     results = {"sample": {"3dgs": run(17.0, [(50, 16.0), (110, 17.0)]),
                           "oracle": run(21.0, [(50, 19.0), (110, 21.0)]),
-                          "recgs": run(20.0, [(50, 16.5), (110, 19.0), (250, 20.0)])}}
+                          "recgs": {**run(20.0, [(50, 16.5), (110, 19.0), (250, 20.0)]),
+                                    "gaussians": 20500, "iterations": 1500}}}
     path = write_benchmark_report(tmp_path, ["sample"], ["3dgs", "oracle", "recgs"], results)
     text = path.read_text()
-    assert "| sample | 17.00 dB / 0.425, 110 s | 21.00 dB / 0.525, 110 s | 20.00 dB / 0.500, 250 s | 0.75 |" in text
+    assert ("| sample | 17.00 dB / 0.425, 110 s | 21.00 dB / 0.525, 110 s | "
+            "20.00 dB / 0.500, 20.5k G, 1500 steps, 250 s | 0.75 |") in text
     assert "| recgs | 16.50 | 19.00 | 20.00 |" in text  # last evaluation before 1, 2 and 5 minutes
     for name in ("psnr_time_sample.png", "ssim_time_sample.png"):
         assert (tmp_path / name).stat().st_size > 1000

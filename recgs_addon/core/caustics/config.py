@@ -34,7 +34,7 @@ class CausticConfig:
     estimator: str = "lowpass"           # recgs: C = lowpass(I - render) (paper) | consensus: I - multi-view consensus
     consensus_stat: str = "mean"         # consensus: mean | median | min | quantile (of the views that see a pixel)
     consensus_q: float = 0.25            # consensus_stat quantile: which quantile
-    robust_k: float = 1.5                # recgs: trim pixels brighter than the render by > k robust sigmas; 0 = off (the paper)
+    robust_k: float = 0.0                # recgs: trim pixels brighter than the render by > k robust sigmas; 0 = off (the paper)
     gain_restore: bool = True            # recgs with trimming: rescale colours so renders keep the photos' mean light
 
     #: Settings added since a release, with the value that reproduces runs saved before them.

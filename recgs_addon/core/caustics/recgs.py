@@ -29,7 +29,8 @@ with caustic-free targets:
 The baselines ``filter2d`` and ``joint`` are in ``baselines.py``.
 
 Held-out views are scored for the run's growth, SH and plateau decisions against the held-out
-image with its caustics compensated the same way (``I - lowpass(I - render)``), so moving
+photo during the warm-up (plain 3DGS decides as plain 3DGS) and, once C is in use, against the
+photo with its caustics compensated the same way (``I - lowpass(I - render)``), so moving
 light does not read as model error; the do-no-harm test uses the photos as captured, since
 compensation would hide the low-frequency drift it looks for. Scores against ground truth
 come from ``TrainData.gt_view`` and are only reported. Settings: ``config.py``.
@@ -57,8 +58,7 @@ class RecGS(Method):
         super().__init__(trainer, ccfg)
         self.k: Optional[int] = ccfg.caustic_k or None
         self.eval_k = ccfg.caustic_k or fft_filter.DEFAULT_K
-        self.targets = TrimmedTargets(ccfg.robust_k, reference=lambda image, render: self._decaustic(
-            image, self._estimate(image, render, self.eval_k)))
+        self.targets = TrimmedTargets(ccfg.robust_k, reference=self._reference)
         trainer.set_objective(self.targets)
         self.gain: Optional[list] = None    # the colour gain applied at the end (gain_restore)
         self.maps: dict[int, torch.Tensor] = {}  # C or log-gain per training view (full res)
@@ -82,6 +82,16 @@ class RecGS(Method):
         self.trainer.label = value
 
     # --- estimates -------------------------------------------------------------------------
+    def _reference(self, image: torch.Tensor, render: torch.Tensor) -> torch.Tensor:
+        """What a held-out render is scored against for the trainer's decisions: the photo
+        during the warm-up (it is plain 3DGS and decides as plain 3DGS does: scored against
+        compensated photos, growth went on to 3x the Gaussians, half of them carrying no
+        view), the photo with its caustics compensated once C is in use."""
+        if self.stage == "warmup":
+            return image
+        return self._decaustic(image, self._estimate(image, render, self.eval_k))
+
+
     def _decaustic(self, image: torch.Tensor, cmap: torch.Tensor) -> torch.Tensor:
         return remove_caustics(image, cmap, self.ccfg.caustic_model)
 

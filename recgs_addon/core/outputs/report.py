@@ -106,9 +106,9 @@ def write_benchmark_report(out: Path, surveys: Sequence[str], methods: Sequence[
     one table and one PNG per survey of held-out PSNR (vs ground truth) against time."""
     out = Path(out)
     lines = ["# Caustic-removal benchmark", "",
-             "Held-out PSNR / SSIM against the clean ground truth (dB), time to the end of the run (s), "
-             "PSNR of the caustic-free training images against ground truth (dB), and the RecGS "
-             "gap recovered = (recgs - 3dgs) / (oracle - 3dgs).", ""]
+             "Held-out PSNR / SSIM against the clean ground truth (dB), Gaussians (k = thousands), steps, "
+             "time to the end of the run (s), PSNR of the caustic-free training images against ground "
+             "truth (dB), and the RecGS gap recovered = (recgs - 3dgs) / (oracle - 3dgs).", ""]
     head = "| survey | " + " | ".join(methods) + " | gap recovered |"
     lines += [head, "|" + "---|" * (len(methods) + 2)]
     for s in surveys:
@@ -119,7 +119,10 @@ def write_benchmark_report(out: Path, surveys: Sequence[str], methods: Sequence[
             if not r:
                 cells.append("-")
                 continue
-            cell = f"{_f(r.get('psnr_test_gt'))} dB / {_f(r.get('ssim_test_gt'), 3)}, {_f(r.get('seconds'), 0)} s"
+            cell = f"{_f(r.get('psnr_test_gt'))} dB / {_f(r.get('ssim_test_gt'), 3)}"
+            if r.get("gaussians") is not None:
+                cell += f", {r['gaussians'] / 1000:.1f}k G, {r.get('iterations')} steps"
+            cell += f", {_f(r.get('seconds'), 0)} s"
             if r.get("psnr_decaustic_gt") is not None:
                 cell += f", train {_f(r['psnr_decaustic_gt'])}"
             cells.append(cell)
