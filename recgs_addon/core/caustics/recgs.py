@@ -1,31 +1,34 @@
-"""Caustic removal: the recurrent loop of RecGS (Zhang et al. 2024) and its baselines.
+"""The recurrent loop of RecGS (Zhang et al. 2024), with the remedies measured in docs/caustics.md.
 
 :class:`RecGS` drives a :class:`~..train.trainer.Trainer` in segments and fills its objective
 with caustic-free targets:
 
-* train plain 3DGS on the captured images I (warm-up: until density control has
-  stopped growing the model, held-out PSNR plateaus, ``ccfg.warmup`` steps, or
-  ``ccfg.warmup_share`` of the time limit, whichever comes first), then recur:
-  render every training view, low-pass the residual ``R = I - render`` (``fft_filter.py``,
-  ``estimate.py``)
-  into the caustic estimate ``C`` (less its mean per view and channel unless
-  ``ccfg.caustic_dc``: caustics move light without adding any, and a DC term would carry the
-  warm-up model's brightness error, see docs/caustics.md), train ``ccfg.recurrence_steps``
-  steps against ``I - C``, and repeat until ``C`` stops changing (``mean |C_new - C_old| / mean |C_new| <
-  cfg.recurrence_tol``), or at ``ccfg.max_recurrences`` or the time/iteration limit.
-  ``ccfg.caustic_model = "multiplicative"`` estimates a log-gain
-  ``L = lowpass(log(I + e) - log(render + e))`` and fits ``(I + e) exp(-L) - e`` instead,
-  since caustics modulate the light; ``ccfg.caustic_k = 0`` picks the block size from the
-  residual spectrum at the first recurrence (``caustics.choose_k``).
-
-  Do no harm: C is *dropped* and the model trains on as plain 3DGS on the captured images
-  (stage ``settle``) when C is negligible (``mean |C| < cfg.caustic_floor``) or does not
+* Warm-up: plain 3DGS on the captured images I, until density control has stopped growing
+  the model, held-out PSNR plateaus, ``ccfg.warmup`` steps, or ``ccfg.warmup_share`` of the
+  time limit, whichever comes first.
+* Recurrences: render every training view and estimate each view's caustics ``C``: by default
+  the low-pass of the residual ``R = I - render`` (``fft_filter.py``, ``estimate.py``; less
+  its mean per view and channel unless ``ccfg.caustic_dc``: caustics move light without adding
+  any), or ``I`` less the multi-view consensus of the photos (``ccfg.estimator = "consensus"``,
+  ``consensus.py``). Train ``ccfg.recurrence_steps`` steps against ``I - C``, and repeat
+  until ``C`` stops changing (``mean |C_new - C_old| / mean |C_new| < ccfg.recurrence_tol``),
+  or at ``ccfg.max_recurrences`` or the time/iteration limit. ``ccfg.caustic_model =
+  "multiplicative"`` estimates a log-gain ``L = lowpass(log(I + e) - log(render + e))`` and
+  fits ``(I + e) exp(-L) - e``; ``ccfg.caustic_k = 0`` picks the block size from the residual
+  spectrum at the first recurrence (``fft_filter.choose_k``).
+* Robust trimming (``ccfg.robust_k`` > 0, ``robust.py``): pixels much brighter than the
+  render do not count in the loss, C is low-passed over the pixels that count, and at the end
+  the colours are rescaled to the photos' mean light (``ccfg.gain_restore``).
+* Do no harm: C is *dropped* and the model trains on as plain 3DGS on the captured images
+  (stage ``settle``) when C is negligible (``mean |C| < ccfg.caustic_floor``) or does not
   settle (its change shrinks by less than ``ccfg.stall_ratio`` per round while ``mean |C|``
   grows by more than ``ccfg.stall_growth``: an estimate of a caustic field converges, one that
   follows model error keeps growing, which is what happens without caustics); these go on
   from the current model. When ``ccfg.recurrence_patience`` rounds in a row score more than
   ``ccfg.harm_tol`` dB below the plain model on the held-out views against the captured photos
   (``Trainer.heldout_psnr``), the plain model the recurrences started from comes back first.
+  The run ends with the best model on the held-out photos (``TrainConfig.keep_best``).
+
 The baselines ``filter2d`` and ``joint`` are in ``baselines.py``.
 
 Held-out views are scored for the run's growth, SH and plateau decisions against the held-out
@@ -41,9 +44,9 @@ from typing import Callable, Optional
 
 import torch
 
+from ..train.data import view_tensors
 from ..train.trainer import Progress, Trainer
 from . import fft_filter
-from ..train.data import view_tensors
 from .config import CausticConfig
 from .consensus import consensus_targets
 from .estimate import estimate_caustics, remove_caustics
