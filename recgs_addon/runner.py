@@ -235,6 +235,10 @@ def run_train(args) -> int:
     try:
         reason = method.run(on_progress=on_progress, should_stop=lambda: stop["signal"] is not None,
                              on_checkpoint=checkpoint, checkpoint_every_s=args.checkpoint_every)
+    except RecGSError as exc:  # bad input found during training (an image that does not decode)
+        _emit("error", message=f"{exc} (training stopped at iteration {trainer.step}; the last checkpoint is kept)")
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     except Exception as exc:  # keep the last checkpoint; report the error as an event too
         _emit("error", message=f"training failed at iteration {trainer.step}: {exc!r}")
         raise

@@ -194,3 +194,84 @@ def test_all_images_missing_says_so(colmap_scene):
         p.rename(root / p.name)
     with pytest.raises(SceneError, match=r"images: none of the 4 images the COLMAP model lists are in this folder"):
         load_scene(root)
+
+
+# --- values no survey can use: each a clear error naming the file --------------------------------
+
+def _text_scene(tmp_path):
+    root = tmp_path / "survey"
+    write_colmap_scene(root, binary=False, n_images=3, n_points=30)
+    return root, root / "sparse" / "0"
+
+
+def _edit_first_data_line(path, edit):
+    lines = path.read_text().splitlines()
+    i = next(k for k, line in enumerate(lines) if line and not line.startswith("#"))
+    lines[i] = edit(lines[i].split())
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _binary_scene(tmp_path, edit):
+    """A binary survey whose reconstruction ``edit(rec)`` changed before it was written: the
+    values pycolmap's text reader would refuse (NaN) reach us only through binary files."""
+    root = tmp_path / "survey"
+    rec = write_colmap_scene(root, n_images=3, n_points=30)
+    edit(rec)
+    rec.write_binary(str(root / "sparse" / "0"))
+    return root
+
+
+@pytest.mark.parametrize("params,msg", [([float("nan"), 60, 32, 24], "NaN or infinite"),
+                                        ([60, float("inf"), 32, 24], "NaN or infinite"),
+                                        ([-60, 60, 32, 24], "focal length <= 0")])
+def test_camera_with_unusable_parameters(tmp_path, params, msg):
+    def edit(rec):
+        rec.cameras[1].params = params
+    root = _binary_scene(tmp_path, edit)
+    with pytest.raises(SceneError, match=msg) as e:
+        load_scene(root)
+    assert "cameras.bin" in str(e.value) and "camera 1" in str(e.value)
+
+
+def test_camera_without_pixels_is_blamed_on_the_camera(tmp_path):
+    root, model = _text_scene(tmp_path)
+    _edit_first_data_line(model / "cameras.txt", lambda t: " ".join(t[:2] + ["0", "0"] + t[4:]))
+    with pytest.raises(SceneError) as e:
+        load_scene(root)
+    assert "cameras.txt" in str(e.value) and "0x0" in str(e.value)
+
+
+def test_pose_with_nan_is_refused(tmp_path):
+    import pycolmap
+
+    def edit(rec):
+        f = rec.frames[1]
+        f.rig_from_world = pycolmap.Rigid3d(f.rig_from_world.rotation, np.array([np.nan, 0.0, 3.0]))
+    root = _binary_scene(tmp_path, edit)
+    with pytest.raises(SceneError, match="img_000.png.*NaN") as e:
+        load_scene(root)
+    assert "images.bin" in str(e.value)
+
+
+def test_points_with_nan_are_dropped_and_all_nan_refused(tmp_path):
+    def one(rec):
+        rec.points3D[next(iter(rec.points3D))].xyz = np.array([np.nan, 0.0, 0.0])
+    with pytest.warns(UserWarning, match="dropped 1 of"):
+        scene = load_scene(_binary_scene(tmp_path / "one", one))
+    assert np.isfinite(scene.points).all() and len(scene.points) == len(scene.colors)
+
+    def every(rec):
+        for pid in rec.points3D:
+            rec.points3D[pid].xyz = np.array([np.nan, np.inf, 0.0])
+    with pytest.raises(SceneError, match="all .* 3D points have NaN") as e:
+        load_scene(_binary_scene(tmp_path / "all", every))
+    assert "points3D.bin" in str(e.value)
+
+
+def test_two_images_with_one_name_are_refused(tmp_path):
+    root, model = _text_scene(tmp_path)
+    text = (model / "images.txt").read_text().replace("img_001.png", "img_000.png")
+    (model / "images.txt").write_text(text)
+    with pytest.raises(SceneError, match="same name 'img_000.png'") as e:
+        load_scene(root)
+    assert "images.txt" in str(e.value)

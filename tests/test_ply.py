@@ -162,3 +162,26 @@ def test_no_warning_for_clean_file(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         read_gaussian_ply(tmp_path / "g.ply")
+
+
+def test_duplicated_property_is_refused(tmp_path):
+    p = tmp_path / "dup.ply"
+    write_gaussian_ply(p, random_gaussians(n=3, degree=0))
+    data = p.read_bytes()
+    head, body = data.split(b"end_header\n", 1)
+    head = head.replace(b"property float opacity\n", b"property float scale_0\n")   # same size, a name twice
+    p.write_bytes(head + b"end_header\n" + body)
+    with pytest.raises(PlyError, match="property 'scale_0' twice") as e:
+        read_gaussian_ply(p)
+    assert "dup.ply" in str(e.value)
+
+
+def test_count_short_of_the_body_is_refused(tmp_path):
+    """A header that declares fewer vertices than the body holds: the rest would be dropped
+    without a word (or the body is not what the header says)."""
+    p = tmp_path / "short.ply"
+    write_gaussian_ply(p, random_gaussians(n=5, degree=0))
+    p.write_bytes(p.read_bytes().replace(b"element vertex 5\n", b"element vertex 4\n"))
+    with pytest.raises(PlyError, match=r"bytes follow the last element.*count \(4\)") as e:
+        read_gaussian_ply(p)
+    assert "short.ply" in str(e.value)

@@ -438,3 +438,22 @@ def test_blending_weights_add_up_to_the_alpha_of_the_view(small_scene):
     assert support.shape == (p["means"].shape[0],) and 0 <= support.min() and support.max() <= len(tr.data.train_ids)
     s = support_summary(support)
     assert sum(s["histogram"]) == len(support) and 0 <= s["share_le2"] <= 1
+
+
+def test_job_with_an_image_that_does_not_decode_stops_with_one_line(small_scene, tmp_path):
+    """A truncated PNG passes the import's header check; the job that then reads it stops with
+    one error line naming the file (no traceback) and exit code 1."""
+    import shutil
+
+    scene = tmp_path / "scene"
+    shutil.copytree(small_scene, scene)
+    victim = sorted((scene / "images").iterdir())[1]
+    victim.write_bytes(victim.read_bytes()[:200])
+    r = _run(_train_cmd(scene, tmp_path / "out"))
+    assert r.returncode == 1, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr
+    err = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert len(err) == 1 and victim.name in err[0] and "cannot decode" in err[0], r.stderr[-2000:]
+    # libpng writes its own complaint to stdout; the job's events are the JSON lines
+    events = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
+    assert events[-1]["event"] == "error" and victim.name in events[-1]["message"]

@@ -15,6 +15,7 @@ import os
 import shutil
 import struct
 import tempfile
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -241,6 +242,35 @@ def _points_from_reconstruction(rec) -> tuple[np.ndarray, np.ndarray]:
     return pts, cols
 
 
+def _check_camera(cams_file: Path, cam_id: int, cam) -> None:
+    """A camera no projection can use: no pixels, or focal lengths / principal point that are
+    not finite, or focal lengths that are not positive."""
+    if cam.width <= 0 or cam.height <= 0:
+        raise SceneError(f"{cams_file}: camera {cam_id} is {cam.width}x{cam.height} pixels")
+    params = np.asarray(cam.params, dtype=np.float64)
+    if not np.isfinite(params).all():
+        raise SceneError(f"{cams_file}: camera {cam_id} has parameters that are NaN or infinite: "
+                         f"{', '.join(f'{v:g}' for v in params)}")
+    focal = params[cam.focal_length_idxs()] if hasattr(cam, "focal_length_idxs") else params[:1]
+    if (focal <= 0).any():
+        raise SceneError(f"{cams_file}: camera {cam_id} has a focal length <= 0 ({', '.join(f'{v:g}' for v in focal)})")
+
+
+def _check_poses(images_file: Path, rec) -> None:
+    """Registered images with a pose that is not finite, or two images with one name."""
+    seen: dict[str, int] = {}
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+        if not np.isfinite(np.asarray(pose.matrix(), dtype=np.float64)).all():
+            raise SceneError(f"{images_file}: image {image.name!r} (id {image_id}) has a pose with NaN or "
+                             "infinite values")
+        if image.name in seen:
+            raise SceneError(f"{images_file}: images {seen[image.name]} and {image_id} have the same name "
+                             f"{image.name!r}")
+        seen[image.name] = image_id
+
+
 def _check_images(rec, image_dir: Path) -> None:
     if not image_dir.is_dir():
         raise SceneError(f"{image_dir}: image folder does not exist")
@@ -334,7 +364,9 @@ def load_scene(scene_dir: str | os.PathLike, image_dir: str | os.PathLike | None
         if name not in PINHOLE_MODELS + UNDISTORTED_MODELS:
             raise SceneError(f"{cams_file}: camera {cam_id} uses the {name} model, which is not supported "
                              f"(supported: {', '.join(PINHOLE_MODELS + UNDISTORTED_MODELS)})")
+        _check_camera(cams_file, cam_id, cam)
         models[cam_id] = name
+    _check_poses(model_dir / f"images{ext}", rec)
     if check_images:
         _check_images(rec, image_dir)
     names = sorted(rec.image(i).name for i in rec.reg_image_ids())
@@ -350,8 +382,15 @@ def load_scene(scene_dir: str | os.PathLike, image_dir: str | os.PathLike | None
         by_name[image.name] = _camera_from_pycolmap(image, rec.camera(image.camera_id))
     cameras = [by_name[n] for n in sorted(by_name)]
     points, colors = _points_from_reconstruction(rec)
+    points_file = model_dir / ("points3D" + _model_format(model_dir))
     if len(points) == 0:
-        raise SceneError(f"{model_dir / ('points3D' + _model_format(model_dir))}: the model has no 3D points; "
-                         "Gaussians are initialised from them")
+        raise SceneError(f"{points_file}: the model has no 3D points; Gaussians are initialised from them")
+    finite = np.isfinite(points).all(1)
+    if not finite.all():
+        if not finite.any():
+            raise SceneError(f"{points_file}: all {len(points)} 3D points have NaN or infinite coordinates")
+        warnings.warn(f"{points_file}: dropped {int((~finite).sum())} of {len(points)} 3D points with NaN or "
+                      "infinite coordinates", stacklevel=2)
+        points, colors = points[finite], colors[finite]
     return Scene(scene_dir=scene_dir, model_dir=model_dir, image_dir=image_dir, cameras=cameras,
                  points=points, colors=colors, undistorted=undistorted)

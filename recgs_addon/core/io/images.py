@@ -17,6 +17,12 @@ from ..errors import ImageError
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
 
 
+
+def _first_line(message: str) -> str:
+    """OpenImageIO's error text repeats itself over several lines; the first says what happened."""
+    lines = [ln.strip() for ln in str(message).splitlines() if ln.strip()]
+    return lines[0] if lines else "unknown error"
+
 def _oiio():
     import OpenImageIO as oiio  # imported lazily: the Blender layer loads without it
 
@@ -66,11 +72,11 @@ def read_image(path: str | os.PathLike, downscale: int = 1) -> np.ndarray:
         roi = oiio.ROI(0, w, 0, h, 0, 1, 0, spec.nchannels)
         small = oiio.ImageBufAlgo.resize(buf, filtername="box", roi=roi)
         if small.has_error:
-            raise ImageError(f"{path}: cannot resize image ({small.geterror()})")
+            raise ImageError(f"{path}: cannot resize image ({_first_line(small.geterror())})")
         buf = small
     pixels = buf.get_pixels(oiio.FLOAT)
     if pixels is None or buf.has_error:
-        raise ImageError(f"{path}: cannot decode image pixels ({buf.geterror()})")
+        raise ImageError(f"{path}: cannot decode image pixels ({_first_line(buf.geterror())})")
     arr = np.asarray(pixels, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[:, :, None]

@@ -65,6 +65,9 @@ def _parse_header(path: Path, f):
                 if len(tok) != 3 or tok[1] not in _TYPES:
                     raise PlyError(f"{path}: unknown PLY property type in {line.strip()!r}")
                 elements[-1][2].append((tok[2], _TYPES[tok[1]]))
+            names = [p[0] for p in elements[-1][2]]
+            if names.count(names[-1]) > 1:
+                raise PlyError(f"{path}: element '{elements[-1][0]}' declares the property '{names[-1]}' twice")
         else:
             raise PlyError(f"{path}: unexpected PLY header line {line.strip()!r}")
     if fmt is None:
@@ -129,6 +132,10 @@ def read_ply_elements(path: str | os.PathLike, wanted: str = "vertex") -> dict[s
                 out[name] = arr.astype(arr.dtype.newbyteorder("=")) if endian == ">" else arr
                 if name == wanted:
                     break
+            if elements and elements[-1][0] == wanted and offset != size:
+                name, count, _ = elements[-1]
+                raise PlyError(f"{path}: {size - offset} bytes follow the last element: the header's "
+                               f"'{name}' count ({count}) is short of the file's body")
     if wanted not in out:
         raise PlyError(f"{path}: PLY file has no '{wanted}' element")
     return out
