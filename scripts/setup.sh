@@ -49,7 +49,7 @@ if [ ! -e "$stamp" ]; then
   echo "setup: installing Python packages from $REQ into .venv"
   .venv/bin/python -m pip install -q --disable-pip-version-check -r "$REQ" 2>&1 \
     | grep -v "is ignored: it is neither a file nor a directory" || true
-  .venv/bin/python -c "import bpy, numpy, torch, pycolmap, OpenImageIO, scipy" \
+  .venv/bin/python -c "import bpy, numpy, torch, pycolmap, OpenImageIO" \
     || { echo "setup: the Python packages did not install correctly" >&2; exit 1; }
   touch "$stamp"
 fi

@@ -200,6 +200,17 @@ def test_core_imports_without_bpy_on_path():
     assert r.returncode == 0 and "ok" in r.stdout, r.stderr
 
 
+def test_import_path_does_not_need_scipy():
+    """Stock Blender has no scipy: a survey's initial Gaussians come from numpy alone."""
+    code = ("import sys; sys.modules['scipy'] = None; sys.modules['torch'] = None\n"
+            "import numpy as np\n"
+            "from recgs_addon.core.model.gaussians import init_from_points\n"
+            "g = init_from_points(np.random.default_rng(0).random((500, 3)), np.zeros((500, 3), np.uint8))\n"
+            "print('ok', len(g))")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0 and "ok 500" in r.stdout, r.stderr
+
+
 def test_import_export_path_does_not_need_torch():
     """Blender's Python may lack torch: COLMAP/PLY import and export must work without it."""
     code = ("import sys; sys.modules['torch'] = None\n"
