@@ -22,7 +22,7 @@ LAYERS = [
     ("core.train",),
     ("core.caustics",),
     ("core.outputs",),
-    ("runner",),
+    ("runner", "engine_install"),
     ("blender",),
     ("batch", "cli"),
     ("__main__",),

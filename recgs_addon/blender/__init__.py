@@ -3,10 +3,11 @@ from __future__ import annotations
 
 import bpy
 
-from . import operators, panel, preview, properties, training
+from . import engine, operators, panel, preview, properties, training
 
 
 def register():
+    engine.register()
     properties.register()
     for cls in operators.classes:
         bpy.utils.register_class(cls)
@@ -28,3 +29,4 @@ def unregister():
     for cls in reversed(operators.classes):
         bpy.utils.unregister_class(cls)
     properties.unregister()
+    engine.unregister()

@@ -41,31 +41,56 @@ _live: "set[Job]" = set()
 _live_lock = threading.Lock()
 
 
+#: The Python that runs jobs (``None``: this one) and the training engine folder it sees;
+#: set by :func:`configure` (``engine.configure_jobs`` from the add-on's preferences).
+_worker_python: Optional[str] = None
+_engine: Optional[Path] = None
+
+
+def configure(python: Optional[str] = None, engine: Optional[Path] = None) -> None:
+    global _worker_python, _engine
+    _worker_python, _engine = (python or None), engine
+
+
+def worker_python() -> str:
+    return _worker_python or sys.executable
+
+
 def job_env() -> dict:
-    """The environment of a job: ours, with the package's folder first on PYTHONPATH."""
-    env = dict(os.environ)
-    parts = [str(PACKAGE_PARENT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
-    env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(parts))
-    env.setdefault("PYTHONUNBUFFERED", "1")
-    return env
+    """The environment of a job: the package's folder, the training engine and the
+    site-packages Blender put on ``sys.path`` (bundled wheels) first on PYTHONPATH."""
+    from ..engine_install import worker_env
+    return worker_env(PACKAGE_PARENT, _engine, same_python=_worker_python is None)
 
 
 def missing_modules(names: Iterable[str]) -> list[str]:
-    """The modules of ``names`` that this Python (hence a job) cannot import."""
+    """The modules of ``names`` that a job cannot import: looked up in this Python and the
+    engine folder, or asked of the chosen worker Python."""
+    names = list(names)
+    if _worker_python is not None:
+        code = "import importlib.util as u, sys; print(' '.join(n for n in sys.argv[1:] if u.find_spec(n) is None))"
+        try:
+            r = subprocess.run([_worker_python, "-c", code, *names], capture_output=True, text=True,
+                               env=job_env(), timeout=60)
+        except (OSError, subprocess.TimeoutExpired):
+            return names
+        return r.stdout.split() if r.returncode == 0 else names
     missing = []
     for name in names:
         try:
             found = importlib.util.find_spec(name) is not None
         except (ImportError, ValueError, AttributeError):
             found = False
+        if not found and _engine is not None:
+            found = (_engine / name).is_dir() or (_engine / f"{name}.py").is_file()
         if not found:
             missing.append(name)
     return missing
 
 
 def command(*args: str) -> list[str]:
-    """``[python, -m, recgs_addon, *args]`` for this Python."""
-    return [sys.executable, "-m", PACKAGE_NAME, *map(str, args)]
+    """``[python, -m, recgs_addon, *args]`` for the worker Python."""
+    return [worker_python(), "-m", PACKAGE_NAME, *map(str, args)]
 
 
 def train_command(scene_dir, out_dir, options: dict, init_ply=None, resume: bool = False) -> list[str]:

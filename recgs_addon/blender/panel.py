@@ -10,7 +10,7 @@ from __future__ import annotations
 import bpy
 
 from . import gaussian_object as gobj
-from . import preview, training
+from . import engine, preview, training
 from .properties import CAUSTIC_MODES
 
 
@@ -89,6 +89,8 @@ class VIEW3D_PT_recgs_training(_RecGSPanel, bpy.types.Panel):
         sub = col.row()
         sub.active = s.mode in CAUSTIC_MODES
         sub.prop(s, "caustic_k")
+        if not busy and not engine.engine_ready():
+            engine.draw_engine(layout)
         row = layout.row(align=True)
         row.scale_y = 1.4
         if busy:

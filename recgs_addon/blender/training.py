@@ -134,7 +134,9 @@ def start_training(scene, obj, resume: bool = False, echo_stderr: bool = False, 
     message; raises WorkflowError (or RecGSError / OSError) before anything starts."""
     _check_free()
     obj = _gaussian_object(obj)
-    _check_modules("torch", what="Training")
+    if jobs.missing_modules(["torch"]):
+        raise WorkflowError("Training needs the training engine: click Install Training Engine (RecGS "
+                            "preferences or sidebar), or choose a Python with torch in the preferences")
     s = scene.recgs
     if s.mode in CAUSTIC_MODES and s.caustic_k % 2 == 0 and s.caustic_k != 0:
         raise WorkflowError(f"Caustic Filter Size must be odd, got {s.caustic_k}")

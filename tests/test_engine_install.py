@@ -1,0 +1,101 @@
+"""The training-engine installer without Blender and without the network: pip is replaced by
+small scripts that fail, hang or write a fake torch."""
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from recgs_addon import engine_install as ei
+
+FAKE_TORCH = ("import os, sys; d = sys.argv[1]; os.makedirs(os.path.join(d, 'torch'));"
+              "open(os.path.join(d, 'torch', '__init__.py'), 'w').write(\"__version__ = %r\")")
+
+
+def _run(inst, timeout=60):
+    t0 = time.monotonic()
+    while inst.poll() is None:
+        assert time.monotonic() - t0 < timeout, inst.progress.lines
+        time.sleep(0.05)
+    return inst.status
+
+
+def _fake_install(root, version="9.9"):
+    return ei.Installer(root, command=[sys.executable, "-c", FAKE_TORCH % version, "{target}"])
+
+
+def test_success_swaps_in_and_the_worker_sees_it(tmp_path):
+    assert ei.installed_engine(tmp_path) is None
+    inst = _fake_install(tmp_path)
+    assert _run(inst) == "done", inst.message
+    site = ei.installed_engine(tmp_path)
+    assert site == ei.engine_site(tmp_path) and not inst.tmp.exists()
+    assert ei.engine_info(site)["torch"] == "9.9"
+    env = ei.worker_env(tmp_path / "pkg", site, base={"PYTHONPATH": "/elsewhere"})
+    assert env["PYTHONPATH"].split(os.pathsep)[:2] == [str(tmp_path / "pkg"), str(site)]
+    assert env["PYTHONPATH"].endswith("/elsewhere") and env["PYTHONNOUSERSITE"] == "1"
+    r = subprocess.run([sys.executable, "-c", "import torch; print(torch.__version__)"], env=env,
+                       capture_output=True, text=True)
+    assert r.stdout.strip() == "9.9", r.stderr
+    assert _run(_fake_install(tmp_path, "10.0")) == "done"           # a reinstall replaces it
+    assert ei.engine_info(site)["torch"] == "10.0"
+    assert sorted(p.name for p in site.parent.iterdir()) == ["site-packages"]
+
+
+@pytest.mark.parametrize("output, words", [
+    ("ERROR: Could not find a version that satisfies the requirement torch==2.13.0", "Could not find"),
+    ("WARNING: Retrying ... NewConnectionError: Failed to establish a new connection\n"
+     "ERROR: Could not find a version", "network failed"),
+])
+def test_pip_failure_leaves_nothing(tmp_path, output, words):
+    code = f"import sys; print('Collecting torch==2.13.0'); print({output!r}); sys.exit(1)"
+    inst = ei.Installer(tmp_path, command=[sys.executable, "-c", code])
+    assert _run(inst) == "failed" and words in inst.message
+    assert not inst.tmp.exists() and ei.installed_engine(tmp_path) is None
+
+
+def test_installed_but_not_importable_is_refused(tmp_path):
+    inst = ei.Installer(tmp_path, command=[sys.executable, "-c", "pass"])   # pip "succeeds", no torch
+    assert _run(inst) == "failed" and "holds no torch" in inst.message
+    assert not inst.tmp.exists() and ei.installed_engine(tmp_path) is None
+
+
+def test_cancel_and_leftovers(tmp_path):
+    assert _run(_fake_install(tmp_path)) == "done"
+    inst = ei.Installer(tmp_path, command=[sys.executable, "-c", "import time; time.sleep(60)"])
+    assert inst.tmp.is_dir()
+    inst.cancel()
+    assert inst.status == "cancelled" and not inst.tmp.exists()
+    assert ei.engine_info(ei.installed_engine(tmp_path))["torch"] == "9.9"   # the old engine stays
+    inst.tmp.mkdir(parents=True)                                    # a crashed attempt's folder
+    (inst.tmp / "junk").write_text("x")
+    assert _run(_fake_install(tmp_path, "11")) == "done" and not inst.tmp.exists()
+
+
+def test_progress_lines():
+    p = ei.Progress()
+    ei.parse_line("Collecting torch==2.13.0", p)
+    assert (p.phase, p.package) == ("resolving", "torch==2.13.0")
+    ei.parse_line("  Downloading https://x/torch-2.13.0%2Bcpu-cp311-cp311-linux_x86_64.whl (191.8 MB)", p)
+    assert p.phase == "downloading" and p.package.startswith("torch-2.13.0")
+    ei.parse_line("Progress 50 of 200", p)
+    assert p.fraction == 0.25
+    ei.parse_line("Installing collected packages: torch", p)
+    assert p.phase == "installing"
+
+
+def test_pip_command(monkeypatch):
+    monkeypatch.delenv(ei.PIP_ARGS_ENV, raising=False)
+    cmd = ei.pip_command("/t", platform="linux")
+    assert cmd[-1] == "torch==2.13.0" and cmd[cmd.index("--target") + 1] == "/t"
+    assert cmd[cmd.index("--extra-index-url") + 1] == ei.TORCH_CPU_INDEX
+    assert "--extra-index-url" not in ei.pip_command("/t", platform="win32")
+    monkeypatch.setenv(ei.PIP_ARGS_ENV, "--index-url http://mirror/simple")
+    cmd = ei.pip_command("/t", platform="linux")
+    assert "http://mirror/simple" in cmd and ei.TORCH_CPU_INDEX not in cmd
+
+
+def test_engine_dir_env(monkeypatch, tmp_path):
+    monkeypatch.setenv(ei.ENGINE_DIR_ENV, str(tmp_path))
+    assert ei.installed_engine(None) == tmp_path
