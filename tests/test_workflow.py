@@ -186,7 +186,7 @@ def test_operator_errors_report_instead_of_raising(session, tmp_path, monkeypatc
     refused(bpy.ops.recgs.train, "Caustic Filter Size must be odd")
     s.mode = "3dgs"
     monkeypatch.setattr(jobs, "missing_modules", lambda names: list(names))
-    refused(bpy.ops.recgs.train, r"needs the Python package\(s\) torch in Blender's Python")
+    refused(bpy.ops.recgs.train, r"needs the training engine: click Install Training Engine")
     monkeypatch.undo()
     # no Gaussian object selected
     bpy.ops.object.select_all(action="DESELECT")
