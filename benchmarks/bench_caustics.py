@@ -84,7 +84,6 @@ def run_method(scene: Path, out: Path, method: str, minutes: float, extra: list[
         return json.loads(metrics.read_text())
     cmd = [sys.executable, "-m", "recgs_addon", "train", str(scene), "--out", str(out),
            "--max-minutes", str(minutes), *METHODS[method], *extra]
-
     t = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     if proc.returncode != 0:

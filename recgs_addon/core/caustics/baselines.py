@@ -17,7 +17,7 @@ from ..train.objective import FixedTargets, Objective
 from ..train.trainer import Trainer
 from . import fft_filter
 from .config import CausticConfig
-from .estimate import estimate_caustics, remove_caustics
+from .estimate import compensate_caustics
 from .method import Method
 
 
@@ -66,8 +66,7 @@ class Joint(Method):
         trainer.set_objective(_FieldObjective(self.fields, trainer.cfg.lr_sh_dc * 2, self._compensate))
 
     def _compensate(self, image, render):
-        m = self.ccfg.caustic_model
-        return remove_caustics(image, estimate_caustics(image, render, self.k, m, self.ccfg.caustic_dc), m)
+        return compensate_caustics(image, render, self.k, self.ccfg.caustic_model, self.ccfg.caustic_dc)
 
     @torch.no_grad()
     def decaustic_image(self, index: int) -> torch.Tensor:

@@ -40,3 +40,11 @@ def remove_caustics(image: torch.Tensor, cmap: torch.Tensor, model: str = "addit
     if model == "multiplicative":
         return (image + LOG_EPS) * torch.exp(-cmap) - LOG_EPS
     return image - cmap
+
+
+def compensate_caustics(image: torch.Tensor, render: torch.Tensor, k: int, model: str = "additive",
+                        dc: bool = False, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """``image`` with the caustics its residual against ``render`` shows taken out: what a
+    held-out render is scored against once caustics are estimated (``remove_caustics`` of
+    ``estimate_caustics``)."""
+    return remove_caustics(image, estimate_caustics(image, render, k, model, dc, weight), model)
