@@ -20,7 +20,9 @@ Every 8th view by sorted name is held out, as in training.
 ``--estimator consensus --stat S`` replaces the rounds by one refit to the multi-view
 consensus targets (core/caustics/consensus.py, statistic S of the photos warped with the
 frozen geometry's depth, gain restored per sample count): how far colours from more than
-each point's own photos' average can go with the same geometry.
+each point's own photos' average can go with the same geometry. ``--estimator gradients``
+does the same with log-gradient consensus (Weiss 2001): the high band integrated from the
+median of the warped photos' log-gradients, the lowest ``--k`` frequencies from their mean.
 """
 from __future__ import annotations
 
@@ -35,7 +37,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recgs_addon.core.caustics import fft_filter as caustics  # noqa: E402
-from recgs_addon.core.caustics.consensus import consensus_targets  # noqa: E402
+from recgs_addon.core.caustics.consensus import consensus_targets, log_gradient_targets  # noqa: E402
 from recgs_addon.core.io.colmap import load_scene  # noqa: E402
 from recgs_addon.core.train.losses import psnr  # noqa: E402
 from recgs_addon.core.io.ply import read_gaussian_ply  # noqa: E402
@@ -103,16 +105,19 @@ def bound(scene_dir: Path, model: Path, *, targets: str = "captured", loss: str 
     report("as given")
     fit(steps, photo)
     report("refit")
-    if estimator == "consensus":
+    if estimator in ("consensus", "gradients"):
         with torch.no_grad():
             outs = {i: render(means, log_scales, quats, logit_op, dc, *view[i], cams[i].width, cams[i].height,
                               sh_degree=0, compiled=compiled) for i in train_ids}
             views = [dict(photo=photo[i], depth=outs[i].depth, alpha=outs[i].alpha, viewmat=view[i][0], K=view[i][1])
                      for i in train_ids]
-            tg, _, _ = consensus_targets(views, stat)
+            if estimator == "gradients":
+                tg = log_gradient_targets(views, k)
+            else:
+                tg, _, _ = consensus_targets(views, stat)
             cmaps = {i: photo[i] - x for i, x in zip(train_ids, tg)}
         fit(steps, {i: photo[i] - cmaps[i] for i in train_ids})
-        report(f"consensus {stat}", cmaps)
+        report("log-gradients" if estimator == "gradients" else f"consensus {stat}", cmaps)
         return records
     for r in range(rounds):
         with torch.no_grad():
@@ -136,7 +141,7 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=25, help="low-pass block size")
     ap.add_argument("--lr", type=float, default=0.01)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--estimator", choices=["lowpass", "consensus"], default="lowpass")
+    ap.add_argument("--estimator", choices=["lowpass", "consensus", "gradients"], default="lowpass")
     ap.add_argument("--stat", choices=["mean", "median", "min", "quantile"], default="mean",
                     help="consensus: the per-pixel statistic")
     args = ap.parse_args()

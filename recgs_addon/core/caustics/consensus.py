@@ -17,6 +17,10 @@ depends on the number of samples ``n``. The *gain restore* measures, for each ``
 colour channel, the survey-wide ratio of the photos to the envelope over the pixels with
 ``n`` samples, and multiplies the envelope by it (the photos hold the mean light).
 
+``log_gradient_targets`` takes the high band from the median of the samples' log-gradients
+instead (Weiss 2001; illumination edges are sparse and move, reflectance edges stay), integrated
+with a Poisson solve, and the low band from their mean.
+
 Shapes: photos and targets (H, W, 3) float32; depth, counts (H, W). Cameras: ``viewmat``
 (4, 4) world-to-camera (OpenCV axes), ``K`` (3, 3), pixel centres at +0.5.
 """
@@ -26,6 +30,9 @@ from typing import Optional
 
 import torch
 import torch.nn.functional as F
+
+from .estimate import LOG_EPS
+from .fft_filter import integrate_gradients, lowpass
 
 STATS = ("mean", "median", "min", "quantile")
 
@@ -103,22 +110,69 @@ def consensus(views, stat="median", q=0.25, depth_tol=0.03, min_alpha=0.5):
     (H, W) of the model's render (``depth`` not normalised, as ``render`` returns it),
     ``viewmat``, ``K``. Returns (statistics, counts); pixels the model does not cover
     (alpha < ``min_alpha``) keep their own photo and count 1."""
-    for v in views:
-        v["surface"] = v["depth"] / v["alpha"].clamp_min(1e-6)
+    _add_surfaces(views)
     out, counts = [], []
-    for i, vi in enumerate(views):
-        pts = backproject(vi["surface"], vi["viewmat"], vi["K"])
-        covered = vi["alpha"] >= min_alpha
-        samples, valid = [vi["photo"]], [torch.ones_like(covered)]
-        for j, vj in enumerate(views):
-            if j != i:
-                s_, ok = warp(pts, vj, depth_tol, min_alpha)
-                samples.append(s_)
-                valid.append(ok & covered)
-        samples, valid = torch.stack(samples), torch.stack(valid)
+    for i in range(len(views)):
+        samples, valid = sample_stack(views, i, depth_tol, min_alpha)
         out.append(robust_stat(samples, valid, stat, q))
         counts.append(valid.sum(0))
     return out, counts
+
+
+def _add_surfaces(views) -> None:
+    for v in views:
+        v["surface"] = v["depth"] / v["alpha"].clamp_min(1e-6)
+
+
+def sample_stack(views, i: int, depth_tol: float = 0.03, min_alpha: float = 0.5):
+    """View ``i``'s own photo and every other photo warped into it: (samples (V, H, W, 3),
+    valid (V, H, W) bool), the own photo first and valid everywhere. ``views`` as for
+    ``consensus``, with ``surface`` (depth / alpha) added."""
+    vi = views[i]
+    pts = backproject(vi["surface"], vi["viewmat"], vi["K"])
+    covered = vi["alpha"] >= min_alpha
+    samples, valid = [vi["photo"]], [torch.ones_like(covered)]
+    for j, vj in enumerate(views):
+        if j != i:
+            s_, ok = warp(pts, vj, depth_tol, min_alpha)
+            samples.append(s_)
+            valid.append(ok & covered)
+    return torch.stack(samples), torch.stack(valid)
+
+
+def median_log_gradients(samples: torch.Tensor, valid: torch.Tensor, eps: float = LOG_EPS):
+    """Per-pixel median over the views of the forward differences of ``log(samples + eps)``
+    (Weiss 2001: illumination edges move between shots and are sparse, so the median of the
+    log-image gradients is the reflectance's). ``samples`` (V, H, W, 3), ``valid`` (V, H, W).
+    Returns (gx, gy), each (H, W, 3), 0 where no view has both pixels of a difference."""
+    log = torch.log(samples.clamp_min(0) + eps)
+    nan = torch.tensor(float("nan"), dtype=log.dtype)
+    vx = (valid[:, :, 1:] & valid[:, :, :-1]).unsqueeze(-1)
+    vy = (valid[:, 1:] & valid[:, :-1]).unsqueeze(-1)
+    mx = torch.nanmedian(torch.where(vx, log[:, :, 1:] - log[:, :, :-1], nan), 0).values
+    my = torch.nanmedian(torch.where(vy, log[:, 1:] - log[:, :-1], nan), 0).values
+    gx = torch.zeros_like(log[0])
+    gy = torch.zeros_like(log[0])
+    gx[:, :-1] = torch.nan_to_num(mx)
+    gy[:-1] = torch.nan_to_num(my)
+    return gx, gy
+
+
+def log_gradient_targets(views, k: int = 25, depth_tol: float = 0.03, min_alpha: float = 0.5,
+                         eps: float = LOG_EPS) -> list[torch.Tensor]:
+    """Targets from log-gradient consensus (Weiss 2001) for the high band and the mean
+    consensus for the low band: ``exp(lowpass_k(log mean) + highpass_k(u)) - eps``, where ``u``
+    integrates the median log-gradients (``median_log_gradients``). The integration fixes
+    only gradients, so the lowest ``k x k`` frequencies come from the mean of the views."""
+    _add_surfaces(views)
+    out = []
+    for i in range(len(views)):
+        samples, valid = sample_stack(views, i, depth_tol, min_alpha)
+        mean = robust_stat(samples, valid, "mean")
+        u = integrate_gradients(*median_log_gradients(samples, valid, eps))
+        low = lowpass(torch.log(mean.clamp_min(0) + eps), k)
+        out.append(torch.exp(low + u - lowpass(u, k)) - eps)
+    return out
 
 
 def gain_by_count(photos: list[torch.Tensor], stats: list[torch.Tensor], counts: list[torch.Tensor],
