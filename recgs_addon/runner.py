@@ -229,9 +229,16 @@ def run_train(args) -> int:
             msg += f" held-out PSNR {p.psnr_test:.2f} dB"
         print(msg, file=sys.stderr, flush=True)
 
+    def on_compile(message: str) -> None:
+        _emit("compile", message=message, iteration=trainer.step)
+        print(message, file=sys.stderr, flush=True)
+
     _emit("start", scene=str(args.scene_dir), out=str(out), resumed=bool(state), iteration=trainer.step,
           train_views=len(trainer.data.train_ids), test_views=len(trainer.data.test_ids),
           gaussians=int(trainer.params["means"].shape[0]), allocator=allocator, config={**asdict(cfg), **asdict(ccfg)})
+    for message in trainer.compiler.messages:
+        on_compile(message)
+    trainer.compiler.log = on_compile
     try:
         reason = method.run(on_progress=on_progress, should_stop=lambda: stop["signal"] is not None,
                              on_checkpoint=checkpoint, checkpoint_every_s=args.checkpoint_every)
@@ -243,6 +250,7 @@ def run_train(args) -> int:
         _emit("error", message=f"training failed at iteration {trainer.step}: {exc!r}")
         raise
     finally:
+        trainer.compiler.close()
         for s, h in old.items():
             signal.signal(s, h)
     checkpoint(trainer)
@@ -261,6 +269,7 @@ def run_train(args) -> int:
         "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
         "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"),
         "psnr_test_captured": final.get("psnr_captured"), "view_support": support, **outputs,
+        "compile": trainer.compiler.summary(),
         "history": trainer.history, "recurrences": [], **method.summary(),
         "config": {**asdict(trainer.cfg), **asdict(ccfg)},
     }

@@ -208,7 +208,7 @@ class RecGS(Method):
     def _warmup_time_up(self) -> bool:
         """With a time limit, the warm-up gets at most ``warmup_share`` of it."""
         c, limit = self.ccfg, self.trainer.cfg.max_minutes
-        return limit is not None and self.trainer.elapsed >= c.warmup_share * 60 * limit
+        return limit is not None and self.trainer.schedule_elapsed() >= c.warmup_share * 60 * limit
 
     # --- do no harm: the held-out check of the recurrences ------------------------------------
     def _harm(self, score: Optional[float]) -> Optional[str]:

@@ -234,12 +234,25 @@ def _candidates(means, log_scales, logit_opacities, viewmat, K, width, height, n
 
 _COMPILED: dict = {}
 
+#: Graphs one compiled function may hold. A training run asks for SH degrees 0-3, each with
+#: and without autograd (training steps, evaluations): 8 variants of the SH colour alone,
+#: torch's default limit, past which dynamo silently runs the function eagerly.
+RECOMPILE_LIMIT = 32
+
+
+def allow_variants() -> None:
+    """Raise dynamo's per-function recompile limit to :data:`RECOMPILE_LIMIT` (never lower it)."""
+    cfg = torch._dynamo.config
+    if getattr(cfg, "recompile_limit", RECOMPILE_LIMIT) < RECOMPILE_LIMIT:
+        cfg.recompile_limit = RECOMPILE_LIMIT
+
 
 def _maybe_compiled(fn, compiled: bool):
     """``fn`` eagerly, or through torch.compile (per Gaussian: fused forward and backward)."""
     if not compiled:
         return fn
     if fn not in _COMPILED:
+        allow_variants()
         _COMPILED[fn] = torch.compile(fn, dynamic=True)
     return _COMPILED[fn]
 

@@ -34,7 +34,7 @@ from typing import NamedTuple, Optional
 
 import torch
 
-from .projection import ALPHA_MIN, _index_rows, camera_centre, project_gaussians
+from .projection import ALPHA_MIN, _index_rows, allow_variants, camera_centre, project_gaussians
 from ..model.sh import eval_sh_colour
 
 #: Alpha is clamped here (INRIA): one Gaussian never makes a pixel fully opaque, which also
@@ -192,6 +192,7 @@ def _mark_dynamic(*tensors_dims):
 
 
 def _compiled_kernels() -> _Kernels:
+    allow_variants()
     fwd_c = torch.compile(_chunk_forward, fullgraph=True, dynamic=False)
     bwd_c = torch.compile(_chunk_backward, fullgraph=True, dynamic=False)
 
@@ -266,6 +267,7 @@ def _sh_fn(compiled: bool):
     if not compiled:
         return eval_sh_colour
     if "sh" not in _KERNEL_CACHE:
+        allow_variants()
         _KERNEL_CACHE["sh"] = torch.compile(eval_sh_colour, dynamic=True)
     return _KERNEL_CACHE["sh"]
 

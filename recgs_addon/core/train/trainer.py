@@ -25,6 +25,7 @@ from ..model.gaussians import GaussianSet, init_from_points, num_sh_coeffs
 from ..render.rasterizer import render
 from ..render.rowgrads import RowGrads
 from . import density
+from .compiling import CompileSwitch
 from .config import TrainConfig
 from .data import TrainData, resolve_image_dir, view_tensors
 from .losses import psnr, ssim, training_loss
@@ -98,6 +99,12 @@ class Trainer:
         #: (``score``, ``step``, and a ``snapshot()``)
         self.best: Optional[dict] = None
         self.best_step: Optional[int] = None   # the step of the model a run ended with, if restored
+        #: which rasterizer path each step takes (compiled once a cold cache has warmed up)
+        self.compiler = CompileSwitch(cfg.compiled, max_degree=cfg.sh_degree, device=cfg.device)
+        #: seconds the first compiled step spent tracing and loading its graphs: left out of
+        #: :meth:`schedule_elapsed`, so a compiler's start-up does not change what the model becomes
+        self.compile_stall = 0.0
+        self._stall_measured = False
 
     def set_objective(self, objective: Objective) -> None:
         """Fit ``objective`` from the next step on (its extra parameters get an Adam of their own)."""
@@ -164,6 +171,7 @@ class Trainer:
         c = self.cfg
         level = self.level()
         index = self._next_view()
+        self.compiler.note_step(self.step)
         cam, img = self.data.view(index, level)
         for g in self.optimizer.param_groups:
             if g["name"] == "means":
@@ -174,7 +182,7 @@ class Trainer:
         p = {n: rg.track(n, v, cols=k - 1 if n == "sh_rest" else None) for n, v in self.params.items()}
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (p["sh_dc"], p["sh_rest"]),
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                     background=torch.tensor(c.background, dtype=torch.float32), compiled=c.compiled,
+                     background=torch.tensor(c.background, dtype=torch.float32), compiled=self.compiler.compiled(),
                      gather=rg)
         target, weight = self.objective.target(index, img, out.rgb.detach())
         loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight)
@@ -276,7 +284,7 @@ class Trainer:
         return render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
                       viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
                       background=torch.tensor(self.cfg.background, dtype=torch.float32),
-                      compiled=self.cfg.compiled)
+                      compiled=self.compiler.compiled())
 
     def render_view(self, index: int) -> torch.Tensor:
         """(H, W, 3) render of camera ``index`` at the training resolution (not clamped)."""
@@ -434,7 +442,12 @@ class Trainer:
             if until is not None and until():
                 return "until"
             prev_level = self.level()
+            first_compiled = not self._stall_measured and self.compiler.compiled()
+            t_step = time.perf_counter()
             losses.append(self.train_step())
+            if first_compiled:
+                self.compile_stall += time.perf_counter() - t_step
+                self._stall_measured = True
             if self.level() != prev_level:
                 self.data.drop_level(prev_level)
             self.elapsed = time.perf_counter() - t_start
@@ -444,11 +457,16 @@ class Trainer:
                 self._after_eval(evaluated)
                 self.elapsed = time.perf_counter() - t_start
             self._last_loss = float(np.mean(losses[-c.log_every:]))
-            if on_progress and (self.step % c.log_every == 0 or evaluated or self.done_reason):
+            if on_progress and (self.step % c.log_every == 0 or self.step == 1 or evaluated or self.done_reason):
                 on_progress(self.progress(self._last_loss, evaluated))
             if on_checkpoint and time.perf_counter() - self._last_checkpoint >= checkpoint_every_s:
                 on_checkpoint(self)
                 self._last_checkpoint = time.perf_counter()
+
+    def schedule_elapsed(self) -> float:
+        """Seconds of training as the schedule counts them: wall clock less the compiler's
+        start-up stall (a time limit itself stays wall clock)."""
+        return max(0.0, self.elapsed - self.compile_stall)
 
     def finish(self, on_progress: Optional[Callable[[Progress], None]] = None, **extra) -> None:
         """The last progress report of a run (phase ``done``)."""
@@ -486,7 +504,7 @@ class Trainer:
             "sh_degree": self.sh_degree, "sh_state": self.sh_state, "best_psnr": self.best_psnr,
             "since_best": self.since_best, "reset_done": self.reset_done, "done_reason": self.done_reason,
             "objective_optimizer": None if self.objective_optimizer is None else self.objective_optimizer.state_dict(),
-            "last_densify": self.last_densify,
+            "last_densify": self.last_densify, "compile_stall": self.compile_stall,
             "best": None if self.best is None else {
                 **self.best, "params": {n: v.detach().cpu() for n, v in self.best["params"].items()}},
         }
@@ -512,6 +530,8 @@ class Trainer:
         self.best_psnr, self.since_best = s["best_psnr"], s["since_best"]
         self.reset_done = s["reset_done"]
         self.last_densify = s.get("last_densify", -1)   # checkpoints before keep_best have neither
+        self.compile_stall = s.get("compile_stall", 0.0)
+        self._stall_measured = False   # this process's own first compiled step adds to it
         self.best = s.get("best")
         if self.objective_optimizer is not None and s.get("objective_optimizer") is not None:
             self.objective_optimizer.load_state_dict(s["objective_optimizer"])

@@ -1,0 +1,125 @@
+"""The compile switch: eager at once on a cold cache or without a compiler, compiled once warm."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from recgs_addon.core.train import compiling
+from recgs_addon.core.train.compiling import CompileSwitch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("RECGS_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "elsewhere"))  # restored after
+    return tmp_path / "cache"
+
+
+def test_no_compiler_means_eager(cache, monkeypatch, tmp_path):
+    monkeypatch.delenv("CXX", raising=False)
+    monkeypatch.setenv("PATH", str(tmp_path))     # nothing on it
+    assert compiling.find_compiler() is None
+    sw = CompileSwitch(None)
+    assert sw.state == "unavailable" and not sw.compiled()
+    assert "no C++ compiler" in sw.summary()["reason"] and sw.proc is None
+
+
+def test_explicit_choices_are_kept(cache):
+    assert CompileSwitch(False).compiled() is False
+    assert CompileSwitch(True).compiled() is True
+
+
+def test_cache_goes_to_the_user_folder(cache):
+    d = compiling.use_user_cache()
+    assert d.parent == cache and d.name.startswith("inductor-torch")
+    import os
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(d)
+
+
+def test_warm_key_follows_threads_and_sources(cache):
+    assert compiling.warm_key(1) != compiling.warm_key(2)
+    assert compiling.warm_key(2) == compiling.warm_key(2)
+
+
+def _fake_start(code):
+    """A warm-up that runs ``code`` (with MARKER bound to the marker path) instead of compiling."""
+    def start(self, max_degree):
+        m = compiling.marker()
+        self.proc = subprocess.Popen([sys.executable, "-c", f"MARKER = {str(m)!r}\n{code}"],
+                                     stderr=subprocess.PIPE)
+    return start
+
+
+def test_cold_cache_trains_eager_then_switches(cache, monkeypatch):
+    if compiling.find_compiler() is None:
+        pytest.skip("no C++ compiler here")
+    monkeypatch.setattr(CompileSwitch, "_start", _fake_start(
+        "import pathlib, time; time.sleep(0.3); p = pathlib.Path(MARKER); "
+        "p.parent.mkdir(parents=True, exist_ok=True); p.write_text('ok')"))
+    heard = []
+    sw = CompileSwitch(None, log=heard.append)
+    assert sw.state == "warming" and sw.compiled() is False   # the first step does not wait
+    sw.note_step(7)
+    sw.proc.wait()
+    assert sw.compiled() is True and sw.switched_at == 7
+    assert any("cold" in m for m in heard) and any("from step 7" in m for m in heard)
+    # the next run finds the cache warm and compiles from its first step
+    assert CompileSwitch(None).state == "compiled"
+
+
+def test_failed_warm_up_stays_eager(cache, monkeypatch):
+    if compiling.find_compiler() is None:
+        pytest.skip("no C++ compiler here")
+    monkeypatch.setattr(CompileSwitch, "_start", _fake_start(
+        "import sys; sys.stderr.write('CppCompileError: boom\\n'); sys.exit(1)"))
+    sw = CompileSwitch(None)
+    sw.proc.wait()
+    assert sw.compiled() is False and sw.state == "unavailable"
+    assert "CppCompileError: boom" in sw.summary()["reason"]
+    assert not compiling.is_warm()
+
+
+def test_close_stops_a_running_warm_up(cache, monkeypatch):
+    if compiling.find_compiler() is None:
+        pytest.skip("no C++ compiler here")
+    monkeypatch.setattr(CompileSwitch, "_start", _fake_start("import time; time.sleep(60)"))
+    sw = CompileSwitch(None)
+    proc = sw.proc
+    sw.close()
+    assert proc.poll() is not None and sw.proc is None
+
+
+@pytest.mark.slow
+def test_real_warm_up_covers_a_training_run(tmp_path):
+    """The warm-up subprocess fills a fresh cache; a run after it compiles from its first step
+    and finds every graph of its training steps and evaluations in the cache (at most a couple
+    of small graphs of its own)."""
+    if compiling.find_compiler() is None:
+        pytest.skip("no C++ compiler here")
+    env = {"RECGS_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
+    import os
+    env = {**os.environ, **env}
+    subprocess.run([sys.executable, "-m", "recgs_addon.core.train.compiling", "--max-degree", "1",
+                    "--threads", str(torch.get_num_threads())], env=env, check=True, cwd=ROOT)
+    probe = (
+        "import json, sys, torch, torch._dynamo.utils as u\n"
+        "from recgs_addon.core.train.config import preset\n"
+        "from recgs_addon.core.train.trainer import make_trainer\n"
+        f"tr = make_trainer({str(ROOT / 'data' / 'sample')!r}, preset('default', iterations=30, sh_degree=1, holdout_every=8))\n"
+        "state = tr.compiler.state\n"
+        "for _ in range(20): tr.train_step()\n"
+        "tr.sh_degree = 1\n"
+        "for _ in range(10): tr.train_step()\n"
+        "tr.evaluate()\n"
+        "print(json.dumps({'state': state, 'miss': u.counters['inductor']['fxgraph_cache_miss'],"
+        " 'hit': u.counters['inductor']['fxgraph_cache_hit']}))\n")
+    out = subprocess.run([sys.executable, "-c", probe], env=env, check=True, cwd=ROOT,
+                         capture_output=True, text=True).stdout.strip().splitlines()[-1]
+    got = json.loads(out)
+    assert got["state"] == "compiled"
+    assert got["hit"] >= 10 and got["miss"] <= 2, got
