@@ -78,6 +78,9 @@ def add_train_arguments(p) -> None:
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--checkpoint-every", type=float, default=30.0, help="seconds between checkpoints")
     p.add_argument("--eager", action="store_true", help="do not use torch.compile")
+    p.add_argument("--compile-first", action="store_true",
+                   help="compile before the first step even on a cold cache (default: train eagerly "
+                        "while a background process warms the cache, then switch)")
     g = p.add_argument_group("caustic removal")
     g.add_argument("--gt-images", default=None,
                    help="ground-truth images with the same names, for scoring (default: SCENE/clean if present)")
@@ -184,7 +187,7 @@ def run_train(args) -> int:
             cfg = preset(args.preset, iterations=args.iterations, max_minutes=args.max_minutes,
                          downscale=args.downscale, sh_degree=args.sh_degree, seed=args.seed,
                          device=args.device, holdout_every=args.holdout_every,
-                         budget=_parse_budget(args.budget), compiled=False if args.eager else None,
+                         budget=_parse_budget(args.budget), compiled=False if args.eager else (True if args.compile_first else None),
                          keep_best=False if args.keep_last else None)
             caustic = dict(mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
                            caustic_k=args.caustic_k, caustic_model=args.caustic_model, warmup=args.warmup,

@@ -123,3 +123,32 @@ def test_real_warm_up_covers_a_training_run(tmp_path):
     got = json.loads(out)
     assert got["state"] == "compiled"
     assert got["hit"] >= 10 and got["miss"] <= 2, got
+
+
+def test_warm_up_borrows_a_core_when_none_is_spare(cache, monkeypatch):
+    """On a machine whose cores all train, the warm-up gets one of them until it is done, and
+    the trainer gets it back before its first compiled step (the cache is keyed on threads)."""
+    if compiling.find_compiler() is None:
+        pytest.skip("no C++ compiler here")
+    real_popen = subprocess.Popen
+    seen = {}
+
+    def fake_popen(cmd, env=None, **kw):
+        seen["cmd"], seen["env"] = cmd, env
+        m = compiling.marker(int(cmd[cmd.index("--threads") + 1]))
+        code = f"import pathlib; p = pathlib.Path({str(m)!r}); p.parent.mkdir(parents=True, exist_ok=True); p.write_text('ok')"
+        return real_popen([sys.executable, "-c", code], stderr=subprocess.PIPE)
+
+    monkeypatch.setattr(compiling.subprocess, "Popen", fake_popen)
+    monkeypatch.setattr(compiling.os, "cpu_count", lambda: 2)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        sw = CompileSwitch(None)
+        assert sw.state == "warming" and torch.get_num_threads() == 1
+        assert seen["cmd"][seen["cmd"].index("--threads") + 1] == "2"
+        assert seen["env"]["TORCHINDUCTOR_COMPILE_THREADS"] == "1"
+        sw.proc.wait()
+        assert sw.compiled() is True and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -1,0 +1,107 @@
+"""Time to the first training step, and what a short run reaches, from a cold start.
+
+    .venv/bin/python benchmarks/bench_cold_start.py [SCENE_DIR] [--iterations 600] [--cases ...]
+
+Each case runs ``python -m recgs_addon train`` as a new user would, in its own empty
+``RECGS_CACHE_DIR`` (so torch.compile's cache is cold) and prints, from the job's JSON lines:
+seconds from launch to the first step, to the last step, steps per second over the run, the
+step at which the compiled path took over, held-out PSNR against the captured photos (and
+against ground truth where the survey has it) and the Gaussian count.
+
+Cases:
+  no-compiler   PATH holds no C++ compiler (and CXX is unset): eager throughout
+  auto-cold     the default: eager at once, a background warm-up, then compiled
+  compile-first the behaviour before the switch: compile (cold) before the first step
+  auto-warm     the default again, on the cache auto-cold left behind (warm-up run first)
+  eager         --eager
+
+All cases run one after another in one invocation (the machine is shared: compare them with
+each other, not with figures from another run). Same seed, same iteration count: the PSNRs
+differ only by float32 rounding between the paths and by the order of work.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CASES = ("no-compiler", "auto-cold", "compile-first", "auto-warm", "eager")
+
+
+def run_case(case: str, scene: Path, iterations: int, work: Path) -> dict:
+    cache = work / ("cache-auto" if case in ("auto-cold", "auto-warm") else f"cache-{case}")
+    if case == "auto-cold" and cache.exists():
+        shutil.rmtree(cache)
+    env = dict(os.environ, RECGS_CACHE_DIR=str(cache), PYTHONPATH=str(ROOT))
+    env.pop("TORCHINDUCTOR_CACHE_DIR", None)
+    if case == "no-compiler":
+        empty = work / "empty-bin"
+        empty.mkdir(exist_ok=True)
+        env["PATH"] = str(empty)
+        env.pop("CXX", None)
+    if case == "auto-warm":   # finish the warm-up the cold run started (it is killed at the run's end)
+        subprocess.run([sys.executable, "-m", "recgs_addon.core.train.compiling"], env=env, check=True,
+                       cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    out = work / f"out-{case}"
+    cmd = [sys.executable, "-m", "recgs_addon", "train", str(scene), "--out", str(out),
+           "--iterations", str(iterations), "--checkpoint-every", "1e9"]
+    cmd += {"eager": ["--eager"], "compile-first": ["--compile-first"]}.get(case, [])
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    first = last = None
+    switched = None
+    done = {}
+    for line in proc.stdout:
+        if not line.startswith("{"):
+            continue
+        ev = json.loads(line)
+        now = time.perf_counter() - t0
+        if ev.get("event") == "progress" and ev.get("iteration", 0) >= 1:
+            first = first if first is not None else now
+            last = now
+        if ev.get("event") == "compile" and "from step" in ev.get("message", ""):
+            switched = ev.get("iteration")
+        if ev.get("event") == "done":
+            done = ev
+    proc.wait()
+    total = time.perf_counter() - t0
+    return {"case": case, "first_step_s": first, "run_s": done.get("seconds"), "total_s": total,
+            "steps": done.get("iterations"), "switched_at": switched,
+            "psnr": done.get("psnr_test"), "psnr_gt": done.get("psnr_test_gt"), "gaussians": done.get("gaussians"),
+            "rc": proc.returncode}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scene", nargs="?", type=Path, default=ROOT / "data" / "sample")
+    ap.add_argument("--iterations", type=int, default=600)
+    ap.add_argument("--cases", default=",".join(CASES))
+    a = ap.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="recgs-cold-") as tmp:
+        for case in a.cases.split(","):
+            r = run_case(case, a.scene, a.iterations, Path(tmp))
+            rows.append(r)
+            print(json.dumps(r), flush=True)
+    f = lambda v, p=1: "-" if v is None else f"{v:.{p}f}"  # noqa: E731
+    print(f"\n{a.scene}, {a.iterations} steps, torch threads as default")
+    print("| case | first step (s) | training (s) | whole job (s) | steps/s | compiled from step | "
+          "held-out PSNR (dB) | vs ground truth (dB) | Gaussians |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        sps = r["steps"] / r["run_s"] if r["steps"] and r["run_s"] else None
+        print(f"| {r['case']} | {f(r['first_step_s'])} | {f(r['run_s'])} | {f(r['total_s'])} | {f(sps, 2)} | "
+              f"{r['switched_at'] if r['switched_at'] is not None else '-'} | {f(r['psnr'], 2)} | "
+              f"{f(r['psnr_gt'], 2)} | {r['gaussians']} |")
+    return 0 if all(r["rc"] == 0 for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
