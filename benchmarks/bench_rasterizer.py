@@ -4,6 +4,8 @@ Usage (from the repository root):
     python benchmarks/bench_rasterizer.py            # 320x240 and 640x480, 10k/50k/200k
     python benchmarks/bench_rasterizer.py --quick    # 320x240 with 50k only
     python benchmarks/bench_rasterizer.py --paths eager --sizes 320x240 --counts 50000
+    python benchmarks/bench_rasterizer.py --paths eager,numba,compiled --sizes 320x240,1280x960 \
+        --counts 10000,50000,200000,1000000
 
 Each (scene, path) runs in its own subprocess so that its peak memory (VmHWM from
 /proc/self/status, i.e. peak resident set size including torch's allocations, reset after
@@ -115,7 +117,7 @@ def measure(n, width, height, path, repeats, threads=2, **kw):
     """Time forward and forward+backward for one scene and path (in this process)."""
     torch.set_num_threads(threads)
     scene = survey_scene(n, width, height)
-    compiled = path == "compiled"
+    compiled = {"compiled": True, "eager": False, "numba": "numba"}[path]
     t0 = time.perf_counter()
     run_once(scene, backward=True, compiled=compiled, **kw)    # warm-up (+ compile)
     with torch.no_grad():                                       # (no-grad graphs too)
@@ -152,18 +154,21 @@ def accuracy(n=400, width=64, height=48):
     scene = survey_scene(n, width, height)
     ref = reference_render(*[p.double().numpy() for p in scene["params"]], scene["viewmat"].double().numpy(),
                            scene["K"].double().numpy(), width, height)
-    grads = {}
-    for dtype in (torch.float32, torch.float64):
+    def run(dtype, compiled):
         params = [p.detach().to(dtype).clone().requires_grad_(True) for p in scene["params"]]
-        out = render(*params, scene["viewmat"].to(dtype), scene["K"].to(dtype), width, height, compiled=False)
+        out = render(*params, scene["viewmat"].to(dtype), scene["K"].to(dtype), width, height, compiled=compiled)
         loss = out.rgb.square().mean() + out.alpha.mean() + 0.01 * out.depth.mean()
         loss.backward()
-        grads[dtype] = [p.grad.double() for p in params]
-        if dtype == torch.float32:
-            fwd_err = float(np.abs(out.rgb.detach().double().numpy() - ref["rgb"]).max())
-    rel = max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-30))
-              for a, b in zip(grads[torch.float32], grads[torch.float64]))
-    return dict(n=n, size=f"{width}x{height}", forward_max_abs=fwd_err, grad_max_rel=rel)
+        return out.rgb.detach().double().numpy(), [p.grad.double() for p in params]
+
+    _, g64 = run(torch.float64, False)
+    figures = dict(n=n, size=f"{width}x{height}")
+    for path, compiled in (("eager", False), ("numba", "numba")):
+        rgb, g32 = run(torch.float32, compiled)
+        figures[f"{path}_forward_max_abs"] = float(np.abs(rgb - ref["rgb"]).max())
+        figures[f"{path}_grad_max_rel"] = max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-30))
+                                              for a, b in zip(g32, g64))
+    return figures
 
 
 def main():
@@ -193,9 +198,10 @@ def main():
     print(f"torch {torch.__version__}, threads {args.threads}, repeats {args.repeats}, "
           f"options {kw}; times: median (min) in seconds")
     acc = accuracy()
-    print(f"error at {acc['n']} Gaussians, {acc['size']}: forward max |rgb - float64 oracle| "
-          f"{acc['forward_max_abs']:.2e}; gradients max |float32 - float64| / max |float64| "
-          f"{acc['grad_max_rel']:.2e}")
+    for path in ("eager", "numba"):
+        print(f"{path} error at {acc['n']} Gaussians, {acc['size']}: forward max |rgb - float64 oracle| "
+              f"{acc[path + '_forward_max_abs']:.2e}; gradients max |float32 - float64| / max |float64| "
+              f"{acc[path + '_grad_max_rel']:.2e}")
     hdr = (f"{'size':>8} {'N':>7} {'path':>8} {'fwd s':>15} {'fwd+bwd s':>15} {'peak MB':>8} "
            f"{'visible':>7} {'isect':>8} {'pairs':>10} {'Mpairs/s':>8} {'ns/pair':>7} "
            f"{'warmup s':>8}")

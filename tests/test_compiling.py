@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def cache(tmp_path, monkeypatch):
     monkeypatch.setenv("RECGS_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "elsewhere"))  # restored after
+    monkeypatch.setattr(compiling, "_numba_ready", lambda: False)   # a machine without numba
     return tmp_path / "cache"
 
 
@@ -27,6 +28,17 @@ def test_no_compiler_means_eager(cache, monkeypatch, tmp_path):
     sw = CompileSwitch(None)
     assert sw.state == "unavailable" and not sw.compiled()
     assert "no C++ compiler" in sw.summary()["reason"] and sw.proc is None
+
+
+def test_numba_stands_in_while_torch_compile_cannot(cache, monkeypatch, tmp_path):
+    monkeypatch.setattr(compiling, "_numba_ready", lambda: True)
+    monkeypatch.delenv("CXX", raising=False)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    assert CompileSwitch(None).compiled() is False        # off unless asked for
+    monkeypatch.setenv("RECGS_NUMBA", "1")
+    sw = CompileSwitch(None)
+    assert sw.compiled() == "numba" and "numba" in sw.messages[0]
+    assert CompileSwitch(False).compiled() is False      # --eager: the torch oracle, always
 
 
 def test_explicit_choices_are_kept(cache):

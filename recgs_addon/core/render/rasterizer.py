@@ -236,9 +236,19 @@ def _smoke_render() -> None:
 
 def get_kernels(compiled: Optional[bool]) -> _Kernels:
     """The per-pair kernels: eager (``compiled=False``), ``torch.compile``d (``True``, raises
-    if compilation fails) or compiled-if-possible (``None``, warns once and falls back)."""
+    if compilation fails), compiled-if-possible (``None``, warns once and falls back) or
+    numba's (``"numba"``: no C++ compiler needed; the rest of the render runs eagerly)."""
     if compiled is False:
         return _Kernels(_chunk_forward, _chunk_backward, False)
+    if compiled == "numba":   # compiled without a C++ compiler; eager if numba is missing
+        from . import numba_kernels
+        nk = numba_kernels.load()
+        if nk is None:
+            if "warned_numba" not in _KERNEL_CACHE:
+                warnings.warn(f"numba kernels unavailable ({numba_kernels.error()!r}); using the eager rasterizer")
+                _KERNEL_CACHE["warned_numba"] = True
+            return _Kernels(_chunk_forward, _chunk_backward, False)
+        return _Kernels(nk[0], nk[1], False)
     if "compiled" not in _KERNEL_CACHE:
         try:
             kern = _compiled_kernels()

@@ -135,6 +135,11 @@ def warm_up(max_degree: int = 3) -> None:
     m.write_text(f"warmed {time.strftime('%Y-%m-%d %H:%M:%S')} torch {torch.__version__}\n")
 
 
+def _numba_ready() -> bool:
+    from ..render import numba_kernels
+    return numba_kernels.load(str(user_cache_dir() / "numba")) is not None
+
+
 def _lower_priority() -> None:  # pragma: no cover - runs in the child
     try:
         os.nice(10)
@@ -161,6 +166,11 @@ class CompileSwitch:
         self.reason = ""
         self._step = 0
         self._threads: Optional[int] = None   # the trainer's thread count, while one is lent out
+        #: numba's kernels stand in while torch.compile cannot (no compiler, cold cache), when
+        #: asked for with RECGS_NUMBA=1: off by default, they lose to eager torch at render
+        #: level here (docs/training.md)
+        self.numba = (requested is None and device == "cpu" and os.environ.get("RECGS_NUMBA") == "1"
+                      and _numba_ready())
         if requested is False:
             self.state = "eager"
         elif requested is True or device != "cpu":   # GPUs compile with their own toolchain
@@ -168,7 +178,7 @@ class CompileSwitch:
             self.state = "compiled"
         elif find_compiler() is None:
             self.state, self.reason = "unavailable", "no C++ compiler on PATH"
-            self._say("torch.compile: no C++ compiler on PATH; training on the eager path")
+            self._say(f"torch.compile: no C++ compiler on PATH; training on {self._fallback()}")
         else:
             use_user_cache()
             if is_warm():
@@ -177,9 +187,9 @@ class CompileSwitch:
                 self.state = "warming"
                 self._start(max_degree)
                 if self.state == "warming":
-                    self._say("torch.compile: cache is cold; training starts on the eager path while it warms up")
+                    self._say(f"torch.compile: cache is cold; training starts on {self._fallback()} while it warms up")
                 else:
-                    self._say(f"torch.compile: {self.reason}; training on the eager path")
+                    self._say(f"torch.compile: {self.reason}; training on {self._fallback()}")
 
     def _start(self, max_degree: int) -> None:
         cmd = [sys.executable, "-m", "recgs_addon.core.train.compiling", "--max-degree", str(max_degree),
@@ -205,6 +215,9 @@ class CompileSwitch:
             self._threads = threads
             torch.set_num_threads(threads - 1)
 
+    def _fallback(self) -> str:
+        return "numba's kernels" if self.numba else "the eager path"
+
     def _say(self, message: str) -> None:
         self.messages.append(message)
         self.log(message)
@@ -212,8 +225,10 @@ class CompileSwitch:
     def note_step(self, step: int) -> None:
         self._step = step
 
-    def compiled(self) -> bool:
-        """The path for the next render: True = compiled."""
+    def compiled(self):
+        """The rasterizer path for the next render (``render(compiled=...)``): True = through
+        torch.compile; ``"numba"`` = numba's kernels, while torch.compile is unavailable or
+        warming up (where numba is installed; else False = eager torch)."""
         if self.state == "warming" and self.proc is not None and self.proc.poll() is not None:
             err = self.proc.stderr.read().decode(errors="replace").strip() if self.proc.stderr else ""
             if self._threads is not None:   # give the core back (the cache is keyed on it)
@@ -225,9 +240,13 @@ class CompileSwitch:
             else:
                 self.state = "unavailable"
                 self.reason = f"warm-up failed ({err.splitlines()[-1] if err else self.proc.returncode})"
-                self._say(f"torch.compile: {self.reason}; staying on the eager path")
+                self._say(f"torch.compile: {self.reason}; staying on {self._fallback()}")
             self.proc = None
-        return self.state == "compiled"
+        if self.state == "compiled":
+            return True
+        if self.state in ("unavailable", "warming") and self.numba:
+            return "numba"
+        return False
 
     def close(self) -> None:
         """Stop a warm-up still running (the run is over; the cache keeps what it made)."""
@@ -246,7 +265,8 @@ class CompileSwitch:
             pass
 
     def summary(self) -> dict:
-        return {"state": self.state, "switched_at": self.switched_at, "reason": self.reason or None}
+        return {"state": self.state, "switched_at": self.switched_at, "reason": self.reason or None,
+                "numba": bool(self.numba)}
 
 
 def main(argv=None) -> int:  # pragma: no cover - exercised through CompileSwitch in tests

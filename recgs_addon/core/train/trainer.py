@@ -442,7 +442,7 @@ class Trainer:
             if until is not None and until():
                 return "until"
             prev_level = self.level()
-            first_compiled = not self._stall_measured and self.compiler.compiled()
+            first_compiled = not self._stall_measured and self.compiler.compiled() is True
             t_step = time.perf_counter()
             losses.append(self.train_step())
             if first_compiled:
