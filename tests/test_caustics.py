@@ -339,6 +339,9 @@ def test_recgs_job_writes_caustic_outputs_and_report(caustic_scene, tmp_path):
     report = (out / "report.md").read_text()
     assert "report/c_change.png" in report and (out / "report" / "c_change.png").is_file()
     assert any(p.name.startswith("triptych_") for p in (out / "report").iterdir())
+    for plot in ("psnr_time", "psnr_size"):     # error against speed and against size
+        assert f"report/{plot}.png" in report and (out / "report" / f"{plot}.png").stat().st_size > 0
+    assert m["compile"]["state"] == "eager"     # --eager: no warm-up was started
 
 
 def test_benchmark_report_table_plots_and_gap(tmp_path):

@@ -48,6 +48,20 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
                   "Against the held-out photos as captured (caustics and all: what the run can see) and, where "
                   "the survey has it, against ground truth. A model that takes in each view's caustics falls "
                   "on both.", "", "![held-out PSNR](report/psnr.png)"]
+        # what each second and each Gaussian bought (the model holds only what the views justify)
+        score = [h.get("psnr_gt", h.get("psnr_captured", h["psnr"])) for h in hist]
+        what = "ground truth" if any("psnr_gt" in h for h in hist) else "captured photos"
+        for key, name, label in (("elapsed", "psnr_time", "seconds"), ("gaussians", "psnr_size", "Gaussians")):
+            pts = [(h[key], v) for h, v in zip(hist, score) if h.get(key) is not None and v is not None]
+            if pts:
+                plot.line_chart(rd / f"{name}.png", [(f"vs {what}", [x for x, _ in pts], [y for _, y in pts])],
+                                title=f"Held-out PSNR against {label}", xlabel=label, ylabel="dB")
+        compile_info = metrics.get("compile") or {}
+        when = (f" The rasterizer took the compiled path from step {compile_info['switched_at']}."
+                if compile_info.get("switched_at") is not None else "")
+        lines += ["", f"Held-out PSNR (against {what}) against training time and against model size: "
+                  f"speed and size next to their error.{when}", "",
+                  "![PSNR against time](report/psnr_time.png) ![PSNR against Gaussians](report/psnr_size.png)"]
     sup = metrics.get("view_support")
     if sup:
         hist_v = sup["histogram"]
