@@ -216,7 +216,10 @@ def _build_node_group(ng) -> None:
                            operation="NOR")  # a render that ignores the ratio
     b.link(gi.outputs["Ratio in Renders"], all_in_render.inputs[1])
     in_render = all_in_render.outputs[0]
-    shown = b.node("FunctionNodeBooleanMath", {0: rnd.outputs[3], 1: in_render}, operation="OR").outputs[0]
+    # The boolean output: the 4th of four typed sockets up to Blender 5.0, the only one from 5.1
+    # (whose sockets follow the data type).
+    rnd_bool = next(o for o in rnd.outputs if o.type == "BOOLEAN" and getattr(o, "enabled", True))
+    shown = b.node("FunctionNodeBooleanMath", {0: rnd_bool, 1: in_render}, operation="OR").outputs[0]
     opaque = b.node("FunctionNodeCompare", {"A": _attr(b, "recgs_alpha")}, data_type="FLOAT",
                     operation="GREATER_EQUAL")
     b.link(gi.outputs["Min Opacity"], opaque.inputs["B"])
@@ -330,15 +333,29 @@ def _identifier(ng, name: str) -> str:
     raise KeyError(name)
 
 
+def _socket_value(mod, key: str):
+    """Where a Geometry Nodes modifier keeps an input's value: Blender 5.2 (at least) has a
+    typed struct per input (``mod.properties.inputs.<identifier>.value``); up to 5.0 the
+    values are ID properties of the modifier (``mod[identifier]``). Returns the 5.2 struct,
+    or None for the ID-property layout."""
+    props = getattr(mod, "properties", None)
+    inputs = getattr(props, "inputs", None) if props is not None else None
+    return getattr(inputs, key, None) if inputs is not None else None
+
+
 def get_input(obj, name: str, default=None):
     """A preview modifier input's value (``default`` without a preview)."""
     mod = preview_modifier(obj)
     if mod is None or mod.node_group is None:
         return default
     try:
-        return mod[_identifier(mod.node_group, name)]
+        key = _identifier(mod.node_group, name)
     except KeyError:
         return default
+    sock = _socket_value(mod, key)
+    if sock is not None:
+        return sock.value
+    return mod.get(key, default)
 
 
 def set_input(obj, name: str, value) -> None:
@@ -346,7 +363,12 @@ def set_input(obj, name: str, value) -> None:
     if mod is None:
         raise ValueError(f"'{obj.name}' has no preview; add it with ensure_preview")
     key = _identifier(mod.node_group, name)
-    if mod.get(key) != value:
+    sock = _socket_value(mod, key)
+    if sock is not None:
+        if sock.value != value:
+            sock.value = value
+            obj.update_tag()
+    elif mod.get(key) != value:
         mod[key] = value
         obj.update_tag()
 
