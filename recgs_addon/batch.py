@@ -20,6 +20,7 @@ Ctrl-C cancels the job cleanly (checkpoint written) and still saves what there i
 from __future__ import annotations
 
 import importlib
+import os
 import shutil
 import sys
 import time
@@ -36,6 +37,25 @@ else:
 
 def _pkg(name: str):
     return importlib.import_module(f"{PACKAGE}.{name}")
+
+
+def use_installed_engine(bpy) -> "str | None":
+    """Batch mode trains with the engine the add-on's *Install Training Engine* put in this
+    user's extension folder (``<user>/extensions/.user/<repo>/recgs/engine/...``), unless
+    ``RECGS_ENGINE_DIR`` names one or a Python with torch runs this. Returns the folder used."""
+    ei = _pkg("engine_install")
+    if os.environ.get(ei.ENGINE_DIR_ENV):
+        return os.environ[ei.ENGINE_DIR_ENV]
+    try:
+        base = Path(bpy.utils.user_resource("EXTENSIONS"))
+    except (TypeError, ValueError):   # a Blender before 4.2 has no extensions
+        return None
+    for root in sorted(base.glob(".user/*/recgs")):
+        site = ei.installed_engine(root)
+        if site is not None:
+            os.environ[ei.ENGINE_DIR_ENV] = str(site)   # what the add-on's jobs read
+            return str(site)
+    return None
 
 
 def _argv(argv):
@@ -90,6 +110,9 @@ def main(argv=None) -> int:
     if not scene_dir.is_dir():
         return fail(f"{scene_dir}: scene folder is missing")
     t0 = time.perf_counter()
+    engine = use_installed_engine(bpy)
+    if engine:
+        log(f"training engine: {engine}")
     bpy.ops.wm.read_factory_settings(use_empty=True)
     addon = _pkg("blender")
     training = _pkg("blender.training")

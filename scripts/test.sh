@@ -6,6 +6,6 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh --dev
 if [ "$#" -eq 0 ]; then
-  set -- -m "not slow"
+  set -- -m "not slow and not stock_blender"
 fi
 exec .venv/bin/python -m pytest -q "$@"

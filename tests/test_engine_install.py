@@ -99,3 +99,29 @@ def test_pip_command(monkeypatch):
 def test_engine_dir_env(monkeypatch, tmp_path):
     monkeypatch.setenv(ei.ENGINE_DIR_ENV, str(tmp_path))
     assert ei.installed_engine(None) == tmp_path
+
+
+def test_batch_mode_finds_the_engine_the_addon_installed(tmp_path, monkeypatch):
+    """``blender -b --python batch.py`` trains with the engine in the user's extension folder."""
+    from recgs_addon import batch
+
+    class FakeUtils:
+        @staticmethod
+        def user_resource(kind):
+            assert kind == "EXTENSIONS"
+            return str(tmp_path / "extensions")
+
+    class FakeBpy:
+        utils = FakeUtils
+
+    monkeypatch.delenv(ei.ENGINE_DIR_ENV, raising=False)
+    assert batch.use_installed_engine(FakeBpy) is None          # nothing installed yet
+    root = tmp_path / "extensions" / ".user" / "user_default" / "recgs"
+    site = ei.engine_site(root)
+    site.mkdir(parents=True)
+    assert batch.use_installed_engine(FakeBpy) is None          # half an install does not count
+    (site / ei.MARKER).write_text("{}")
+    assert batch.use_installed_engine(FakeBpy) == str(site)
+    assert os.environ[ei.ENGINE_DIR_ENV] == str(site)           # what the add-on's jobs read
+    monkeypatch.setenv(ei.ENGINE_DIR_ENV, "/chosen")
+    assert batch.use_installed_engine(FakeBpy) == "/chosen"     # an explicit choice wins
