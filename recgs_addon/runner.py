@@ -276,9 +276,9 @@ def run_train(args) -> int:
         "history": trainer.history, "recurrences": [], **method.summary(),
         "config": {**asdict(trainer.cfg), **asdict(ccfg)},
     }
-    tmp = out / ".metrics.json.tmp"
-    tmp.write_text(json.dumps(_finite_tree(metrics), indent=2, allow_nan=False, default=_json_default))
-    tmp.replace(out / "metrics.json")
+    from .core.io.atomic import atomic_path
+    with atomic_path(out / "metrics.json", "metrics") as tmp:
+        tmp.write_text(json.dumps(_finite_tree(metrics), indent=2, allow_nan=False, default=_json_default))
     report = write_run_report(out, metrics, method)
     _emit("done", report=str(report),
           **{k: v for k, v in metrics.items() if k not in ("history", "config", "recurrences")})

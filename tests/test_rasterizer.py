@@ -617,8 +617,7 @@ def test_compiled_path_survives_first_call_under_no_grad():
 # ------------------------------------------------------------------------------ numba
 
 def _numba_works():
-    from recgs_addon.core.render import numba_kernels
-    return numba_kernels.load() is not None
+    return rasterizer.numba_kernels_ready()
 
 
 def test_numba_kernels_match_eager():
@@ -641,7 +640,7 @@ def test_numba_kernels_stop_and_clamp_like_eager():
     if not _numba_works():
         pytest.skip("numba is not installed here")
     from recgs_addon.core.render import numba_kernels
-    fwd, bwd = numba_kernels.load()
+    fwd, bwd = numba_kernels.load(rasterizer.ALPHA_MIN, rasterizer.ALPHA_MAX, rasterizer.T_MIN)
     gen = torch.Generator().manual_seed(1)
     pix = torch.arange(4, dtype=torch.float32) - 1.5
     pxl, pyl = pix.repeat(4), pix.repeat_interleave(4)

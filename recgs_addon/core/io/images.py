@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ImageError
+from .atomic import atomic_path
 
 #: File extensions treated as images when listing a folder.
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
@@ -111,19 +112,13 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     else:
         fmt, data = oiio.UINT8, np.clip(image, 0.0, 1.0)
     spec = oiio.ImageSpec(w, h, c, fmt)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
-    out = oiio.ImageOutput.create(str(tmp))
-    if out is None:
-        raise ImageError(f"{path}: cannot write images of this type ({oiio.geterror()})")
-    try:
+    with atomic_path(path, "image") as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise ImageError(f"{path}: cannot write images of this type ({oiio.geterror()})")
         if not out.open(str(tmp), spec):
             raise ImageError(f"{path}: cannot open for writing ({out.geterror()})")
         ok = out.write_image(np.ascontiguousarray(data))
         out.close()
         if not ok:
             raise ImageError(f"{path}: writing failed ({out.geterror()})")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import PlyError
+from .atomic import atomic_path
 from ..model.gaussians import GaussianSet, num_sh_coeffs, sh_degree_from_coeffs
 
 _TYPES = {
@@ -226,13 +227,7 @@ def write_gaussian_ply(path: str | os.PathLike, g: GaussianSet) -> None:
     rec = gaussians_to_records(g)
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(g)}"]
     header += [f"property float {n}" for n in rec.dtype.names] + ["end_header"]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
+    with atomic_path(path, "PLY") as tmp:
         with open(tmp, "wb") as f:
             f.write(("\n".join(header) + "\n").encode("ascii"))
             f.write(rec.tobytes())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()

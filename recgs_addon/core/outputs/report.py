@@ -8,6 +8,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..io.atomic import atomic_path
 from . import plot
 
 
@@ -108,9 +109,8 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
             plot.labelled_strip(rd / f"caustic_{name}.png", strip, lbl)
             lines += [f"![{name}](report/triptych_{name}.png)", "", f"![{name} caustics](report/caustic_{name}.png)", ""]
     path = out / "report.md"
-    tmp = out / ".report.md.tmp"
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
+    with atomic_path(path, "report") as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
     return path
 
 

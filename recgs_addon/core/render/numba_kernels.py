@@ -16,13 +16,12 @@ One loop per pixel, front to back, stopping where the transmittance would fall b
 outputs and gradients are the eager ones up to float32 summation order. Tiles run in
 parallel (``prange``): each owns its rows of the outputs, so there are no write races.
 
-The machine code is cached per user (``NUMBA_CACHE_DIR``, set by :func:`load` to RecGS's
-cache folder unless already set); the first use on a machine compiles for a few seconds.
+The machine code is cached (``NUMBA_CACHE_DIR``; the trainer points it at RecGS's per-user
+cache folder); the first use on a machine compiles for a few seconds.
 """
 from __future__ import annotations
 
 import math
-import os
 from typing import Optional
 
 import numpy as np
@@ -130,18 +129,15 @@ def _np(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().numpy(), dtype=np.float32)
 
 
-def load(cache_dir: Optional[str] = None):
+def load(alpha_min: float, alpha_max: float, t_min: float):
     """(forward, backward) taking and returning torch tensors, or None if numba is missing
-    or fails to compile here (the reason: :func:`error`)."""
+    or fails to compile here (the reason: :func:`error`). The constants are the
+    rasterizer's (passed in: this module does not import it)."""
     global _KERNELS, _ERROR
     if _KERNELS is not None or _ERROR is not None:
         return _KERNELS
-    if cache_dir and not os.environ.get("NUMBA_CACHE_DIR"):
-        os.environ["NUMBA_CACHE_DIR"] = cache_dir
-    from .rasterizer import ALPHA_MAX, T_MIN
-    from .projection import ALPHA_MIN
     try:
-        fwd_nb, bwd_nb = _build(np.float32(ALPHA_MIN), np.float32(ALPHA_MAX), np.float32(T_MIN))
+        fwd_nb, bwd_nb = _build(np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min))
     except Exception as exc:  # ImportError (no numba), an unsupported platform, ...
         _ERROR = exc
         return None

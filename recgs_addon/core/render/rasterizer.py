@@ -242,7 +242,7 @@ def get_kernels(compiled: Optional[bool]) -> _Kernels:
         return _Kernels(_chunk_forward, _chunk_backward, False)
     if compiled == "numba":   # compiled without a C++ compiler; eager if numba is missing
         from . import numba_kernels
-        nk = numba_kernels.load()
+        nk = numba_kernels.load(ALPHA_MIN, ALPHA_MAX, T_MIN)
         if nk is None:
             if "warned_numba" not in _KERNEL_CACHE:
                 warnings.warn(f"numba kernels unavailable ({numba_kernels.error()!r}); using the eager rasterizer")
@@ -270,6 +270,12 @@ def get_kernels(compiled: Optional[bool]) -> _Kernels:
             _KERNEL_CACHE["warned"] = True
         return _Kernels(_chunk_forward, _chunk_backward, False)
     return kern
+
+
+def numba_kernels_ready() -> bool:
+    """Whether ``compiled="numba"`` runs numba's kernels here (numba installed and working)."""
+    from . import numba_kernels
+    return numba_kernels.load(ALPHA_MIN, ALPHA_MAX, T_MIN) is not None
 
 
 def _sh_fn(compiled: bool):

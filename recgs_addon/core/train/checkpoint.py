@@ -8,29 +8,24 @@ from pathlib import Path
 import torch
 
 from ..errors import RecGSError
+from ..io.atomic import atomic_path
 
 CHECKPOINT_VERSION = 1
 
 
 def save_checkpoint(path: str | os.PathLike, state: dict) -> None:
     """Write ``state`` with torch.save to a temporary file, fsync it, then rename over ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
+    with atomic_path(path, "checkpoint") as tmp:
         with open(tmp, "wb") as f:
-            torch.save({"version": CHECKPOINT_VERSION, **state}, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)  # make the rename itself durable
-        finally:
-            os.close(dir_fd)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+            try:
+                torch.save({"version": CHECKPOINT_VERSION, **state}, f)
+            except RuntimeError as exc:   # torch's zip writer hides a failed write behind its own error
+                cause = exc.__context__
+                while cause is not None and not isinstance(cause, OSError):
+                    cause = cause.__context__
+                if cause is None:
+                    raise
+                raise cause from exc
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:

@@ -136,8 +136,9 @@ def warm_up(max_degree: int = 3) -> None:
 
 
 def _numba_ready() -> bool:
-    from ..render import numba_kernels
-    return numba_kernels.load(str(user_cache_dir() / "numba")) is not None
+    os.environ.setdefault("NUMBA_CACHE_DIR", str(user_cache_dir() / "numba"))
+    from ..render.rasterizer import numba_kernels_ready
+    return numba_kernels_ready()
 
 
 def _lower_priority() -> None:  # pragma: no cover - runs in the child

@@ -1,0 +1,68 @@
+"""Outputs appear whole or not at all.
+
+:func:`atomic_path` hands a writer a temporary name beside the final one (same folder, so
+the rename cannot cross file systems; same suffix, so format-sniffing writers like
+OpenImageIO pick the right format), then flushes it to disk and renames it over the final
+name. If the writer fails, the temporary file is removed and the previous file under the
+final name, if any, is untouched. An ``OSError`` (a full disk, a read-only folder) becomes an
+:class:`OutputError` that names the file and says what happened.
+"""
+from __future__ import annotations
+
+import errno
+import os
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+from ..errors import RecGSError
+
+
+class OutputError(RecGSError):
+    """An output (PLY, checkpoint, image, report) could not be written."""
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:      # Windows cannot open a folder; its rename is durable enough
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def describe(exc: OSError) -> str:
+    if exc.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", -1)):
+        return "the disk is full"
+    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        return "no permission to write there"
+    return exc.strerror or str(exc)
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, what: str = "file") -> Iterator[Path]:
+    """``with atomic_path(p) as tmp: write(tmp)``: ``p`` is replaced only when the block ends
+    without an exception (``what`` names the output in messages: "checkpoint", "PLY", ...)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        yield tmp
+        with open(tmp, "rb+") as f:   # the writer may have closed it: flush what it wrote
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        _fsync_dir(path.parent)
+    except OSError as exc:
+        kept = " (the previous one is kept)" if path.exists() else ""
+        raise OutputError(f"{path}: could not write the {what}: {describe(exc)}{kept}") from exc
+    finally:
+        try:
+            tmp.unlink()
+        except FileNotFoundError:
+            pass
+        except OSError:
+            pass

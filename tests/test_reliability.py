@@ -1,0 +1,111 @@
+"""Outputs appear whole or not at all; a full disk says so and keeps what was there."""
+import builtins
+import errno
+import io
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from recgs_addon.core.errors import RecGSError
+from recgs_addon.core.io.atomic import OutputError, atomic_path
+from recgs_addon.core.io.images import read_image, write_image
+from recgs_addon.core.io.ply import read_gaussian_ply, write_gaussian_ply
+from recgs_addon.core.model.gaussians import GaussianSet
+from recgs_addon.core.train.checkpoint import load_checkpoint, save_checkpoint
+
+
+def gaussians(n, seed=0):
+    rng = np.random.default_rng(seed)
+    return GaussianSet(means=rng.normal(size=(n, 3)).astype(np.float32),
+                       log_scales=np.full((n, 3), -2.0, np.float32),
+                       quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                       logit_opacities=np.zeros(n, np.float32),
+                       sh=rng.normal(size=(n, 1, 3)).astype(np.float32))
+
+
+class DiskFullAfter:
+    """``open`` whose files (opened for writing under ``folder``) raise ENOSPC once more than
+    ``limit`` bytes went into them: a disk that fills up in the middle of a write."""
+
+    def __init__(self, folder, limit):
+        self.folder, self.limit, self.real = str(folder), limit, builtins.open
+
+    def __call__(self, file, mode="r", *args, **kw):
+        f = self.real(file, mode, *args, **kw)
+        if "w" not in mode or not str(file).startswith(self.folder):
+            return f
+        limit, write = self.limit, f.write
+        written = [0]
+
+        def full_write(data):
+            written[0] += len(data)
+            if written[0] > limit:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return write(data)
+
+        f.write = full_write
+        return f
+
+
+def leftovers(folder):
+    return sorted(p.name for p in folder.iterdir() if ".tmp" in p.name)
+
+
+def test_ply_export_on_a_full_disk_keeps_the_previous_one(tmp_path, monkeypatch):
+    path = tmp_path / "point_cloud.ply"
+    write_gaussian_ply(path, gaussians(50))
+    before = path.read_bytes()
+    monkeypatch.setattr(builtins, "open", DiskFullAfter(tmp_path, 1000))
+    with pytest.raises(OutputError, match="point_cloud.ply.*disk is full.*previous one is kept"):
+        write_gaussian_ply(path, gaussians(5000, seed=1))
+    monkeypatch.undo()
+    assert path.read_bytes() == before and len(read_gaussian_ply(path)) == 50
+    assert leftovers(tmp_path) == []
+
+
+def test_checkpoint_on_a_full_disk_keeps_the_previous_one(tmp_path, monkeypatch):
+    path = tmp_path / "checkpoint.pt"
+    save_checkpoint(path, {"step": 100, "params": {"means": torch.zeros(10, 3)}})
+    monkeypatch.setattr(builtins, "open", DiskFullAfter(tmp_path, 500))
+    with pytest.raises(RecGSError, match="checkpoint.pt.*checkpoint.*disk is full"):
+        save_checkpoint(path, {"step": 200, "params": {"means": torch.zeros(100_000, 3)}})
+    monkeypatch.undo()
+    assert load_checkpoint(path)["step"] == 100
+    assert leftovers(tmp_path) == []
+
+
+def test_first_write_on_a_full_disk_leaves_nothing(tmp_path, monkeypatch):
+    monkeypatch.setattr(builtins, "open", DiskFullAfter(tmp_path, 10))
+    with pytest.raises(OutputError, match="disk is full") as info:
+        write_gaussian_ply(tmp_path / "new.ply", gaussians(100))
+    assert "previous one" not in str(info.value)
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_image_write_failure_keeps_the_previous_image(tmp_path, monkeypatch):
+    path = tmp_path / "view.png"
+    write_image(path, np.full((8, 8, 3), 0.5, np.float32))
+    real_replace = os.replace
+
+    def failing_replace(src, dst):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "replace", failing_replace)
+    with pytest.raises(OutputError, match="view.png.*image.*disk is full"):
+        write_image(path, np.zeros((8, 8, 3), np.float32))
+    monkeypatch.setattr(os, "replace", real_replace)
+    assert np.allclose(read_image(path), 128 / 255, atol=1 / 255)
+    assert leftovers(tmp_path) == []
+
+
+def test_atomic_path_leaves_the_old_file_when_the_writer_raises(tmp_path):
+    path = tmp_path / "report.md"
+    path.write_text("old")
+    with pytest.raises(ValueError):
+        with atomic_path(path) as tmp:
+            tmp.write_text("half")
+            raise ValueError("writer bug")
+    assert path.read_text() == "old" and leftovers(tmp_path) == []
