@@ -161,11 +161,8 @@ def run_train(args) -> int:
 
     from .core.caustics.build import make_method
     from .core.caustics.config import CausticConfig
-    from .core.io.ply import read_gaussian_ply, write_gaussian_ply
-    from .core.outputs.diagnostics import support_summary, view_support
-    from .core.outputs.exports import write_outputs
-    from .core.outputs.report import write_run_report
-    from .core.train.checkpoint import load_checkpoint, save_checkpoint
+    from .core.io.ply import read_gaussian_ply
+    from .core.train.checkpoint import load_checkpoint
     from .core.train.config import TrainConfig, preset
     from .core.train.data import default_gt_dir
 
@@ -207,7 +204,28 @@ def run_train(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
 
-    out.mkdir(parents=True, exist_ok=True)
+    from .core.io.lock import folder_lock
+    try:
+        lock = folder_lock(out)
+        lock.__enter__()
+    except RecGSError as exc:
+        trainer.compiler.close()
+        _emit("error", message=str(exc))
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    try:
+        return _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator)
+    finally:
+        lock.__exit__(None, None, None)
+
+
+def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator) -> int:
+    from .core.io.ply import write_gaussian_ply
+    from .core.outputs.diagnostics import support_summary, view_support
+    from .core.outputs.exports import write_outputs
+    from .core.outputs.report import write_run_report
+    from .core.train.checkpoint import save_checkpoint
+
     stop = {"signal": None}
 
     def on_signal(signum, _frame):

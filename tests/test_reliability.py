@@ -109,3 +109,46 @@ def test_atomic_path_leaves_the_old_file_when_the_writer_raises(tmp_path):
             tmp.write_text("half")
             raise ValueError("writer bug")
     assert path.read_text() == "old" and leftovers(tmp_path) == []
+
+
+# ------------------------------------------------------------------ one job per output folder
+
+import signal  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from recgs_addon.core.io.lock import FolderBusyError, folder_lock  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def hold_lock(folder):
+    """A process that holds ``folder``'s lock until killed; returns once it holds it."""
+    code = ("import sys, time; sys.path.insert(0, sys.argv[2])\n"
+            "from recgs_addon.core.io.lock import folder_lock\n"
+            "with folder_lock(sys.argv[1]):\n    print('held', flush=True); time.sleep(600)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(folder), str(ROOT)], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_second_job_on_a_busy_folder_refuses_and_a_killed_job_frees_it(tmp_path):
+    holder = hold_lock(tmp_path)
+    try:
+        with pytest.raises(FolderBusyError, match=f"{tmp_path}.*another training job.*pid {holder.pid}"):
+            with folder_lock(tmp_path):
+                pass
+        res = subprocess.run([sys.executable, "-m", "recgs_addon", "train", str(ROOT / "data" / "sample"),
+                              "--out", str(tmp_path), "--iterations", "5", "--eager"],
+                             cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert res.returncode == 1
+        assert "another training job is writing to this folder" in res.stderr
+        assert "Traceback" not in res.stderr
+        assert not (tmp_path / "checkpoint.pt").exists()      # the refused job wrote nothing
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    with folder_lock(tmp_path):                              # the kill left no stale lock
+        pass
