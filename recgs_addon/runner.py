@@ -290,7 +290,7 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
         "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
         "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"),
         "psnr_test_captured": final.get("psnr_captured"), "view_support": support, **outputs,
-        "compile": trainer.compiler.summary(),
+        "compile": trainer.compiler.summary(), "skipped_steps": trainer.skipped_steps,
         "history": trainer.history, "recurrences": [], **method.summary(),
         "config": {**asdict(trainer.cfg), **asdict(ccfg)},
     }

@@ -1,6 +1,7 @@
 """Trainer: density ops, determinism, exact resume, the job runner, bad inputs."""
 import copy
 import json
+import math
 import os
 import signal
 import subprocess
@@ -457,3 +458,77 @@ def test_job_with_an_image_that_does_not_decode_stops_with_one_line(small_scene,
     # libpng writes its own complaint to stdout; the job's events are the JSON lines
     events = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
     assert events[-1]["event"] == "error" and victim.name in events[-1]["message"]
+
+
+# ------------------------------------------------------------------ NaN / Inf guards
+
+def test_nan_loss_skips_the_step_then_stops_the_run(small_scene, monkeypatch):
+    from recgs_addon.core.train import trainer as trainer_mod
+    tr = make_trainer(small_scene, tiny_cfg(iterations=40))
+    for _ in range(3):
+        tr.train_step()
+    before = {n: v.detach().clone() for n, v in tr.params.items()}
+    real = trainer_mod.training_loss
+    monkeypatch.setattr(trainer_mod, "training_loss", lambda *a, **k: real(*a, **k) * float("nan"))
+    assert math.isnan(tr.train_step())
+    assert all(torch.equal(before[n], v) for n, v in tr.params.items())      # no update
+    assert tr.skipped_steps == 1 and tr.step == 4
+    with pytest.raises(trainer_mod.TrainingDiverged, match="loss was nan for 10 steps in a row"):
+        for _ in range(20):
+            tr.train_step()
+    monkeypatch.setattr(trainer_mod, "training_loss", real)
+    tr.bad_steps = 0
+    tr.train_step()                                                           # recovers
+    assert all(bool(torch.isfinite(v).all()) for v in tr.params.values())
+
+
+def test_nan_parameters_are_never_checkpointed(small_scene, tmp_path):
+    from recgs_addon.core.train.checkpoint import load_checkpoint, save_checkpoint
+    from recgs_addon.core.train.trainer import TrainingDiverged
+    tr = make_trainer(small_scene, tiny_cfg(iterations=40))
+    for _ in range(5):
+        tr.train_step()
+    path = tmp_path / "checkpoint.pt"
+    save_checkpoint(path, tr.state_dict())
+    with torch.no_grad():
+        tr.params["log_scales"][3, 1] = float("inf")
+    with pytest.raises(TrainingDiverged, match="1 Gaussians have NaN/Inf in 'log_scales' at step 5"):
+        save_checkpoint(path, tr.state_dict())
+    assert load_checkpoint(path)["step"] == 5 and torch.isfinite(load_checkpoint(path)["params"]["log_scales"]).all()
+    with torch.no_grad():
+        tr.params["log_scales"][3, 1] = 0.0
+    tr.optimizer.state[tr.params["means"]]["exp_avg_sq"][0, 0] = float("nan")
+    with pytest.raises(TrainingDiverged, match="exp_avg_sq of 'means'"):
+        tr.check_finite()
+
+
+@pytest.mark.slow
+def test_long_run_stays_finite():
+    """20,000 steps on the sample survey (at half size, at most 20,000 Gaussians, to keep it to
+    minutes) with a watch on every step: the loss, every gradient before Adam uses it, and,
+    every 100 steps, every parameter and Adam moment must be finite; no step may be skipped."""
+    cfg = preset("default", iterations=20_000, downscale=2, budget=20_000, compiled=False, holdout_every=8,
+                 eval_every=1000, log_every=100)
+    tr = make_trainer(ROOT / "data" / "sample", cfg)
+    bad = []
+    step = tr.optimizer.step
+
+    def watched_step(*a, **k):
+        for g in tr.optimizer.param_groups:
+            for p in g["params"]:
+                if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+                    bad.append((tr.step, g["name"]))
+        return step(*a, **k)
+
+    tr.optimizer.step = watched_step
+    losses = []
+    while tr.step < cfg.iterations:
+        if tr.optimizer.step is not watched_step:
+            step = tr.optimizer.step             # densification made a new optimiser: watch it too
+            tr.optimizer.step = watched_step
+        losses.append(tr.train_step())
+        if tr.step % 100 == 0:
+            tr.check_finite()
+    assert not bad, bad[:5]
+    assert tr.skipped_steps == 0 and all(math.isfinite(v) for v in losses)
+    assert np.mean(losses[-500:]) < np.mean(losses[:500])

@@ -50,6 +50,15 @@ class Progress:
     extra: dict = field(default_factory=dict)  # what a method driving the trainer adds (flat)
 
 
+#: Consecutive steps with a non-finite loss after which a run stops (its last checkpoint,
+#: written before the trouble, stays as it was).
+MAX_BAD_STEPS = 10
+
+
+class TrainingDiverged(RecGSError):
+    """NaN or Inf in the loss, the parameters or the optimiser's moments."""
+
+
 class Trainer:
     """One training run. ``run()`` until done or told to stop; ``state_dict()`` to checkpoint.
 
@@ -105,6 +114,8 @@ class Trainer:
         #: :meth:`schedule_elapsed`, so a compiler's start-up does not change what the model becomes
         self.compile_stall = 0.0
         self._stall_measured = False
+        self.bad_steps = 0       # consecutive steps skipped for a non-finite loss
+        self.skipped_steps = 0   # all of them (reported)
 
     def set_objective(self, objective: Objective) -> None:
         """Fit ``objective`` from the next step on (its extra parameters get an Adam of their own)."""
@@ -186,6 +197,16 @@ class Trainer:
                      gather=rg)
         target, weight = self.objective.target(index, img, out.rgb.detach())
         loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight)
+        value = loss.item()
+        if not math.isfinite(value):   # skip the update: the parameters keep their last good values
+            self.bad_steps += 1
+            self.skipped_steps += 1
+            self.step += 1
+            if self.bad_steps >= MAX_BAD_STEPS:
+                raise TrainingDiverged(f"training diverged: the loss was {value} for {self.bad_steps} steps in a row "
+                                       f"(last at step {self.step}, view {self.data.scene.cameras[index].name})")
+            return value
+        self.bad_steps = 0
         loss.backward()
         rg.write()   # .grad of the parameters: the visible rows' gradients, zero elsewhere
         if self.densifying() and out.means2d.grad is not None:
@@ -205,7 +226,22 @@ class Trainer:
             self.reset_done = True
         if c.sh_policy == "schedule" and self.step % c.sh_every == 0 and self.sh_degree < c.sh_degree:
             self.sh_degree += 1
-        return loss.item()
+        return value
+
+    def check_finite(self) -> None:
+        """Raise :class:`TrainingDiverged` if a parameter or an Adam moment holds NaN or Inf
+        (every ``log_every`` steps and before every checkpoint: a broken model is never saved)."""
+        for name, v in self.params.items():
+            if not bool(torch.isfinite(v).all()):
+                bad = int((~torch.isfinite(v)).reshape(len(v), -1).any(1).sum())
+                raise TrainingDiverged(f"training diverged: {bad} Gaussians have NaN/Inf in '{name}' at step "
+                                       f"{self.step}")
+        for group in self.optimizer.param_groups:
+            for p in group["params"]:
+                for key, moment in self.optimizer.state.get(p, {}).items():
+                    if torch.is_tensor(moment) and moment.numel() > 1 and not bool(torch.isfinite(moment).all()):
+                        raise TrainingDiverged(f"training diverged: Adam's {key} of '{group['name']}' holds NaN/Inf "
+                                               f"at step {self.step}")
 
     def densifying(self) -> bool:
         return self.step < self.cfg.densify_until and not self.growth_frozen
@@ -456,7 +492,10 @@ class Trainer:
                 evaluated = self.evaluate()
                 self._after_eval(evaluated)
                 self.elapsed = time.perf_counter() - t_start
-            self._last_loss = float(np.mean(losses[-c.log_every:]))
+            recent = [v for v in losses[-c.log_every:] if math.isfinite(v)]
+            self._last_loss = float(np.mean(recent)) if recent else float("nan")
+            if self.step % c.log_every == 0:
+                self.check_finite()
             if on_progress and (self.step % c.log_every == 0 or self.step == 1 or evaluated or self.done_reason):
                 on_progress(self.progress(self._last_loss, evaluated))
             if on_checkpoint and time.perf_counter() - self._last_checkpoint >= checkpoint_every_s:
@@ -494,6 +533,7 @@ class Trainer:
 
     # --- checkpoints ----------------------------------------------------------------------
     def state_dict(self) -> dict:
+        self.check_finite()
         return {
             "config": asdict(self.cfg), "step": self.step, "elapsed": self.elapsed,
             "params": {n: v.detach().cpu().clone() for n, v in self.params.items()},
