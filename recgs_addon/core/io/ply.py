@@ -58,7 +58,7 @@ def _parse_header(path: Path, f):
         elif tok[0] == "property":
             if not elements:
                 raise PlyError(f"{path}: PLY property before any element")
-            if tok[1] == "list":
+            if len(tok) > 1 and tok[1] == "list":
                 if len(tok) != 5 or tok[2] not in _TYPES or tok[3] not in _TYPES:
                     raise PlyError(f"{path}: malformed PLY header line {line.strip()!r}")
                 elements[-1][2].append((tok[4], "list", _TYPES[tok[2]], _TYPES[tok[3]]))
@@ -130,6 +130,8 @@ def read_ply_elements(path: str | os.PathLike, wanted: str = "vertex") -> dict[s
                                    f"but only {size - offset} remain")
                 arr = np.fromfile(f, dtype=dtype, count=count, offset=offset - f.tell()) if count else np.zeros(0, dtype)
                 offset += need
+                if name == wanted:
+                    _check_byte_order(path, fmt, arr)
                 out[name] = arr.astype(arr.dtype.newbyteorder("=")) if endian == ">" else arr
                 if name == wanted:
                     break
@@ -212,6 +214,31 @@ def records_to_gaussians(rec: np.ndarray, source: str = "<records>", drop_nonfin
             warnings.warn(f"{source}: dropped {dropped} of {n} Gaussians with NaN or Inf values", stacklevel=2)
             g = g.subset(ok)
     return g, dropped
+
+
+def _plausible_share(values: np.ndarray) -> float:
+    """Share of float values that are finite and below 1e10 in magnitude (Gaussians' are)."""
+    if values.size == 0:
+        return 1.0
+    with np.errstate(invalid="ignore", over="ignore"):
+        v = values.astype(np.float64)
+        return float(np.mean(np.isfinite(v) & (np.abs(v) < 1e10)))
+
+
+def _check_byte_order(path: Path, fmt: str, arr: np.ndarray) -> None:
+    """A header whose byte order is wrong for its body reads as huge or NaN numbers: refuse it
+    (naming the order the body reads well in) rather than import garbage."""
+    floats = [n for n in arr.dtype.names if arr.dtype[n].kind == "f" and arr.dtype[n].itemsize > 1]
+    if not floats or len(arr) == 0:
+        return
+    sample = arr[: min(len(arr), 4096)]
+    declared = np.concatenate([sample[n].astype(sample[n].dtype.newbyteorder("=")).ravel() for n in floats])
+    swapped = np.concatenate([np.ascontiguousarray(sample[n]).view(sample[n].dtype.newbyteorder()).astype(
+        sample[n].dtype.newbyteorder("=")).ravel() for n in floats])   # the same bytes, the other order
+    if _plausible_share(declared) < 0.9 and _plausible_share(swapped) > 0.99:
+        other = "binary_big_endian" if fmt == "binary_little_endian" else "binary_little_endian"
+        raise PlyError(f"{path}: the header says '{fmt}' but the data reads as '{other}' "
+                       "(huge or NaN values the declared way, plausible the other): the header is wrong")
 
 
 def read_gaussian_ply(path: str | os.PathLike) -> GaussianSet:
