@@ -4,7 +4,7 @@ import warnings
 import numpy as np
 import pytest
 
-from recgs_addon.core.errors import PlyError
+from recgs_addon.core.errors import PlyError, RecGSError
 from recgs_addon.core.model.gaussians import GaussianSet
 from recgs_addon.core.io.ply import (gaussians_to_records, ply_property_names, read_gaussian_ply,
                                   write_gaussian_ply)
@@ -151,7 +151,7 @@ def test_write_is_atomic(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(plymod.os, "replace", failing_replace)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(RecGSError, match="g.ply: could not write the PLY: disk full .the previous one is kept"):
         write_gaussian_ply(tmp_path / "g.ply", random_gaussians(n=7, degree=0))
     assert (tmp_path / "g.ply").read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["g.ply"]
