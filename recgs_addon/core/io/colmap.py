@@ -164,6 +164,69 @@ def _check_points_bin(path: Path, n_obs: int) -> None:
                          f"and {n_obs} observations in images.bin); it may be corrupt")
 
 
+#: COLMAP's sensor types (sensor.h): CAMERA, IMU.
+_SENSOR_TYPES = (0, 1)
+
+
+def _check_rigs_bin(path: Path) -> None:
+    """rigs.bin (COLMAP 3.12+): per rig id u32, sensor count u32, then the reference sensor
+    (type i32, id u32) and each other sensor (type, id, has-pose u8, pose 7 f64 if it has one).
+    Without this walk a truncated file surfaces as pycolmap's internal check message."""
+    data = path.read_bytes()
+    if len(data) < 8:
+        raise SceneError(f"{path}: file is truncated ({len(data)} bytes)")
+    (n,) = struct.unpack_from("<Q", data, 0)
+    off = 8
+    for i in range(n):
+        cut = SceneError(f"{path}: file is truncated (rig {i + 1} of {n} is cut off)")
+        if off + 8 > len(data):
+            raise cut
+        _, n_sensors = struct.unpack_from("<II", data, off)
+        off += 8
+        for j in range(n_sensors):
+            if off + 8 > len(data):
+                raise cut
+            (kind,) = struct.unpack_from("<i", data, off)
+            if kind not in _SENSOR_TYPES:
+                raise SceneError(f"{path}: rig {i + 1} has a sensor of unknown type {kind}; the file is corrupt")
+            off += 8
+            if j:  # the reference sensor has no pose; the others say whether they have one
+                if off + 1 > len(data):
+                    raise cut
+                has_pose = data[off]
+                off += 1 + (56 if has_pose else 0)
+                if off > len(data):
+                    raise cut
+    if off != len(data):
+        raise SceneError(f"{path}: file is longer than its {n} rigs ({len(data) - off} extra bytes); "
+                         "it may be corrupt")
+
+
+def _check_frames_bin(path: Path) -> None:
+    """frames.bin (COLMAP 3.12+): per frame id u32, rig id u32, pose 7 f64, data count u32,
+    then per data (sensor type i32, sensor id u32, data id u64)."""
+    data = path.read_bytes()
+    if len(data) < 8:
+        raise SceneError(f"{path}: file is truncated ({len(data)} bytes)")
+    (n,) = struct.unpack_from("<Q", data, 0)
+    off = 8
+    for i in range(n):
+        if off + 68 > len(data):
+            raise SceneError(f"{path}: file is truncated (frame {i + 1} of {n} is cut off)")
+        (n_data,) = struct.unpack_from("<I", data, off + 64)
+        off += 68
+        if off + 16 * n_data > len(data):
+            raise SceneError(f"{path}: file is truncated (frame {i + 1} of {n} is cut off)")
+        kinds = np.frombuffer(data, dtype="<i4", count=4 * n_data, offset=off)[::4] if n_data else []
+        bad = [int(k) for k in kinds if k not in _SENSOR_TYPES]
+        if bad:
+            raise SceneError(f"{path}: frame {i + 1} names a sensor of unknown type {bad[0]}; the file is corrupt")
+        off += 16 * n_data
+    if off != len(data):
+        raise SceneError(f"{path}: file is longer than its {n} frames ({len(data) - off} extra bytes); "
+                         "it may be corrupt")
+
+
 def _diagnose_text(model_dir: Path) -> str | None:
     """After pycolmap failed on a text model, find the first malformed line (error path only)."""
     def floats(tokens):
@@ -199,6 +262,9 @@ def read_reconstruction(model_dir: str | os.PathLike):
     model_dir = Path(model_dir)
     ext = _model_format(model_dir)
     if ext == ".bin":
+        for name, check in (("rigs.bin", _check_rigs_bin), ("frames.bin", _check_frames_bin)):
+            if (model_dir / name).exists():  # COLMAP 3.12+ writes them; older models have neither
+                check(model_dir / name)
         _check_cameras_bin(model_dir / "cameras.bin")
         n_obs = _check_images_bin(model_dir / "images.bin")
         _check_points_bin(model_dir / "points3D.bin", n_obs)

@@ -217,12 +217,13 @@ def records_to_gaussians(rec: np.ndarray, source: str = "<records>", drop_nonfin
 
 
 def _plausible_share(values: np.ndarray) -> float:
-    """Share of float values that are finite and below 1e10 in magnitude (Gaussians' are)."""
+    """Share of float values that look like data: 0, or finite with 1e-30 < |v| < 1e10 (bytes
+    read in the wrong order give huge, NaN or denormal numbers)."""
     if values.size == 0:
         return 1.0
     with np.errstate(invalid="ignore", over="ignore"):
-        v = values.astype(np.float64)
-        return float(np.mean(np.isfinite(v) & (np.abs(v) < 1e10)))
+        a = np.abs(values.astype(np.float64))
+        return float(np.mean((a == 0) | (np.isfinite(a) & (a > 1e-30) & (a < 1e10))))
 
 
 def _check_byte_order(path: Path, fmt: str, arr: np.ndarray) -> None:
