@@ -168,21 +168,6 @@ def test_image_loader_on_damaged_files(tmp_path_factory, kind, channels, cut, fl
         assert out.ndim == 3 and out.shape[2] == 3 and np.isfinite(out).all()
 
 
-def test_report_how_many_cases(capsys):
-    """Prints how many generated cases each reader saw (run with -s to read it)."""
-    with capsys.disabled():
-        print("\nfuzz cases seen:", dict(sorted(SEEN.items())))
-    assert not SEEN or all(v > 0 for v in SEEN.values())
-
-
-def test_ply_header_cut_inside_a_property_line(tmp_path, ply_bytes):
-    """Regression (found by the fuzzer): a header cut right after 'property' raised IndexError."""
-    path = tmp_path / "cut.ply"
-    path.write_bytes(ply_bytes[: ply_bytes.index(b"property float y") + len(b"property")] + b"\nend_header\n")
-    with pytest.raises(RecGSError, match="cut.ply: unknown PLY property type"):
-        read_gaussian_ply(path)
-
-
 # ---------------------------------------------------------------------------------- COLMAP
 
 @pytest.fixture(scope="module")
@@ -281,3 +266,18 @@ def test_colmap_truncated_rigs_and_frames_name_the_file(tmp_path, colmap_models,
         with pytest.raises(RecGSError, match=f"{name}: file is (truncated|longer)"):
             load_scene(root, cache_dir=root / "cache")
     assert load(_copy_scene(colmap_models[True], tmp_path / "intact")) is not None
+
+
+def test_report_how_many_cases(capsys):
+    """Prints how many generated cases each reader saw (run with -s to read it)."""
+    with capsys.disabled():
+        print("\nfuzz cases seen:", dict(sorted(SEEN.items())))
+    assert not SEEN or all(v > 0 for v in SEEN.values())
+
+
+def test_ply_header_cut_inside_a_property_line(tmp_path, ply_bytes):
+    """Regression (found by the fuzzer): a header cut right after 'property' raised IndexError."""
+    path = tmp_path / "cut.ply"
+    path.write_bytes(ply_bytes[: ply_bytes.index(b"property float y") + len(b"property")] + b"\nend_header\n")
+    with pytest.raises(RecGSError, match="cut.ply: unknown PLY property type"):
+        read_gaussian_ply(path)
