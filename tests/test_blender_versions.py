@@ -45,13 +45,15 @@ def cache_root() -> Path:
 
 
 def find_python(version: str):
-    """A CPython ``version`` (3.11 / 3.13): on PATH, or in pyenv."""
-    exe = shutil.which(f"python{version}")
-    if exe:
-        return exe
+    """A CPython ``version`` (3.11 / 3.13) that runs: in pyenv's versions, or on PATH. A pyenv
+    shim on PATH answers ``which`` for every version pyenv has, but runs only the active ones,
+    so every candidate is tried before it is used."""
     root = os.environ.get("PYENV_ROOT") or os.path.expanduser("~/.pyenv")
     found = sorted(glob.glob(os.path.join(root, "versions", f"{version}.*", "bin", f"python{version}")))
-    return found[-1] if found else None
+    for exe in [*reversed(found), shutil.which(f"python{version}")]:
+        if exe and subprocess.run([exe, "-c", "pass"], capture_output=True).returncode == 0:
+            return exe
+    return None
 
 
 def bpy_venv(bpy_version: str) -> Path:

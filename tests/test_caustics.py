@@ -270,15 +270,17 @@ def test_config_of_an_older_checkpoint_keeps_the_dc_term():
 def test_resume_in_the_middle_of_a_recurrence_continues_it(caustic_scene):
     kw = dict(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40, recurrence_tol=0.0)
     a = make(caustic_scene, **kw)
-    assert a.run(should_stop=lambda: a.trainer.step >= 430) == "stopped"  # inside the first recurrence (400..460)
-    assert a.stage == "recurrence" and a.recurrence == 1 and a.next_due == 460
+    # stop 30 steps into the first recurrence, wherever the warm-up ended (growth can end it early)
+    mid = lambda: a.recurrence == 1 and a.next_due is not None and a.trainer.step == a.next_due - 30  # noqa: E731
+    assert a.run(should_stop=mid) == "stopped"
+    assert a.stage == "recurrence" and a.recurrence == 1 and a.trainer.step == a.next_due - 30
     state = a.state_dict()
     b = make(caustic_scene, **kw)
     b.load_state_dict(state)
     b.run()
     ref = make(caustic_scene, **kw)
     ref.run()
-    assert b.recurrence == ref.recurrence == 3
+    assert b.recurrence == ref.recurrence >= 2
     for n in ref.trainer.params:
         assert torch.equal(b.trainer.params[n], ref.trainer.params[n]), n
     assert [r["c_change"] for r in b.rec_history] == [r["c_change"] for r in ref.rec_history]
