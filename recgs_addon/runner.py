@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .core.caustics.config import ESTIMATORS
 from .core.errors import RecGSError
 
 
@@ -96,9 +97,12 @@ def add_train_arguments(p) -> None:
     g.add_argument("--max-recurrences", type=int, default=None)
     g.add_argument("--recurrence-tol", type=float, default=None,
                    help="recgs: stop when the relative change of C falls below this")
-    g.add_argument("--estimator", choices=["lowpass", "consensus"], default=None,
-                   help="recgs: C from the low-passed residual (the paper, default) or from the multi-view "
-                        "consensus of the photos warped with the model's depth")
+    g.add_argument("--estimator", choices=list(ESTIMATORS), default=None,
+                   help="recgs: C from the low-passed residual (the paper), from the multi-view consensus of "
+                        "the photos warped with the model's depth, or a per-view light field (low band + "
+                        "coherent light over a floor; docs/caustics.md)")
+    g.add_argument("--lf-lambda", type=float, default=None, help="lightfield: TV weight (default 0.05)")
+    g.add_argument("--lf-tau", type=float, default=None, help="lightfield: dead band in log light (default 0.02)")
     g.add_argument("--consensus-stat", choices=["mean", "median", "min", "quantile"], default=None,
                    help="consensus: the per-pixel statistic over the views that see it (default mean)")
     g.add_argument("--robust-k", type=float, default=None,
@@ -191,6 +195,7 @@ def run_train(args) -> int:
                            recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,
                            recurrence_tol=args.recurrence_tol, robust_k=args.robust_k,
                            estimator=args.estimator, consensus_stat=args.consensus_stat,
+                           lf_lambda=args.lf_lambda, lf_tau=args.lf_tau,
                            gain_restore=None if args.gain_restore is None else args.gain_restore == "on")
             ccfg = CausticConfig(**{k: v for k, v in caustic.items() if v is not None})
         init = read_gaussian_ply(args.init_ply) if args.init_ply and not args.resume else None

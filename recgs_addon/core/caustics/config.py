@@ -13,6 +13,8 @@ from ..errors import RecGSError
 MODES = ("3dgs", "oracle", "recgs", "filter2d", "joint")
 #: Modes that train on caustic-free estimates (and write caustic maps).
 CAUSTIC_MODES = ("recgs", "filter2d", "joint")
+#: How RecGS estimates each view's caustics (recgs.py).
+ESTIMATORS = ("lowpass", "consensus", "lightfield")
 
 
 @dataclass
@@ -32,6 +34,9 @@ class CausticConfig:
     recurrence_tol: float = 0.1          # stop when mean |dC| / mean |C| falls below this
     caustic_floor: float = 0.01          # recgs: C is dropped when mean |C| is below this (1 % of full scale)
     estimator: str = "lowpass"           # recgs: C = lowpass(I - render) (paper) | consensus: I - multi-view consensus
+                                         # | lightfield: low band + one-sided coherent light over a floor (lightfield.py)
+    lf_lambda: float = 0.05              # lightfield: TV weight (log light per pixel of edge)
+    lf_tau: float = 0.02                 # lightfield: dead band (log light) below which light is not taken out
     consensus_stat: str = "mean"         # consensus: mean | median | min | quantile (of the views that see a pixel)
     consensus_q: float = 0.25            # consensus_stat quantile: which quantile
     robust_k: float = 0.0                # recgs: trim pixels brighter than the render by > k robust sigmas; 0 = off (the paper)
@@ -56,10 +61,12 @@ class CausticConfig:
             raise RecGSError(f"caustic filter size must be a positive odd number (or 0 = auto), got {self.caustic_k}")
         if self.caustic_model not in ("additive", "multiplicative"):
             raise RecGSError(f"unknown caustic model {self.caustic_model!r} (additive or multiplicative)")
-        if self.estimator not in ("lowpass", "consensus"):
-            raise RecGSError(f"unknown caustic estimator {self.estimator!r} (lowpass or consensus)")
+        if self.estimator not in ESTIMATORS:
+            raise RecGSError(f"unknown caustic estimator {self.estimator!r} (choose from {', '.join(ESTIMATORS)})")
         if self.estimator == "consensus" and self.caustic_model != "additive":
             raise RecGSError("the consensus estimator makes additive caustic maps (caustic model additive)")
+        if self.lf_lambda < 0 or self.lf_tau < 0:
+            raise RecGSError(f"light-field TV weight and dead band must be >= 0, got {self.lf_lambda}, {self.lf_tau}")
         if self.robust_k < 0:
             raise RecGSError(f"robust trimming k must be >= 0 (0 = off), got {self.robust_k}")
         if self.recurrence_steps < 1:

@@ -50,6 +50,7 @@ from . import fft_filter
 from .config import CausticConfig
 from .consensus import consensus_targets
 from .estimate import estimate_caustics, remove_caustics
+from . import lightfield
 from .method import Method
 from .robust import TrimmedTargets, apply_gain, colour_gain, trim_weights
 
@@ -64,6 +65,8 @@ class RecGS(Method):
         self.targets = TrimmedTargets(ccfg.robust_k, reference=self._reference)
         trainer.set_objective(self.targets)
         self.gain: Optional[list] = None    # the colour gain applied at the end (gain_restore)
+        #: lightfield: the survey's linear gain from the floor light to the mean light (3,)
+        self.light_gain = torch.ones(3)
         self.maps: dict[int, torch.Tensor] = {}  # C or log-gain per training view (full res)
         self.recurrence = 0
         self.rec_history: list[dict] = []
@@ -95,13 +98,29 @@ class RecGS(Method):
         return self._decaustic(image, self._estimate(image, render, self.eval_k))
 
 
+    @property
+    def _lightfield(self) -> bool:
+        return self.ccfg.estimator == "lightfield"
+
     def _decaustic(self, image: torch.Tensor, cmap: torch.Tensor) -> torch.Tensor:
+        if self._lightfield:   # the photo under the floor light, brought to the survey's mean light
+            return lightfield.scale_linear(lightfield.remove_light(image, cmap), self.light_gain)
         return remove_caustics(image, cmap, self.ccfg.caustic_model)
 
     def _estimate(self, image: torch.Tensor, rgb: torch.Tensor, k: int) -> torch.Tensor:
-        """C of a view from its photo and render, over the pixels trimming keeps."""
+        """C of a view from its photo and render, over the pixels trimming keeps (lightfield:
+        its light field, against the render brought down to the floor light)."""
+        if self._lightfield:
+            return self._light_fields([image], [rgb], k)[0]
         w = trim_weights(image, rgb, self.targets.k) if self.targets.k else None
         return estimate_caustics(image, rgb, k, self.ccfg.caustic_model, self.ccfg.caustic_dc, w)
+
+    def _light_fields(self, images: list, renders: list, k: int) -> torch.Tensor:
+        """(B, H, W) light fields of views of one size (``lightfield.py``); the model renders
+        the mean light, so its render is brought down by the survey gain first."""
+        q = torch.stack([lightfield.grey_log_ratio(i, lightfield.scale_linear(r, 1.0 / self.light_gain))
+                         for i, r in zip(images, renders)])
+        return lightfield.light_fields(q, k, self.ccfg.lf_lambda, self.ccfg.lf_tau)
 
     def caustic_map(self, index: int) -> torch.Tensor:
         """Additive caustic estimate ``C = I - (caustic-free I)`` of a training view (full res)."""
@@ -133,7 +152,10 @@ class RecGS(Method):
             renders = {i: tr.render_view(i) for i in ids}
             if self.k is None:
                 self.k = fft_filter.choose_k([self.data.view(i, 1)[1] - renders[i] for i in ids])
-            new = {i: self._estimate(self.data.view(i, 1)[1], renders[i], self.k) for i in ids}
+            if self._lightfield:
+                new = self._light_field_maps(renders)
+            else:
+                new = {i: self._estimate(self.data.view(i, 1)[1], renders[i], self.k) for i in ids}
         old = [self.maps.get(i, torch.zeros_like(new[i])) for i in ids]
         change = fft_filter.caustic_change([new[i] for i in ids], old)
         self._set_maps(new)
@@ -143,6 +165,21 @@ class RecGS(Method):
                  "c_change": change, "mean_abs_c": level, "k": self.k}
         self.rec_history.append(entry)
         return entry
+
+    def _light_field_maps(self, renders: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
+        """Every training view's light field (batched by image size), then the survey gain
+        that brings the targets under the floor light back to the photos' mean light."""
+        ids = self.data.train_ids
+        by_size: dict[tuple, list[int]] = {}
+        for i in ids:
+            by_size.setdefault(tuple(renders[i].shape), []).append(i)
+        new = {}
+        for group in by_size.values():
+            fields = self._light_fields([self.data.view(i, 1)[1] for i in group], [renders[i] for i in group], self.k)
+            new.update(zip(group, fields))
+        photos = [self.data.view(i, 1)[1] for i in ids]
+        self.light_gain = lightfield.linear_gain((p, lightfield.remove_light(p, new[i])) for p, i in zip(photos, ids))
+        return new
 
     def _consensus_maps(self) -> dict[int, torch.Tensor]:
         """C = I - (gain-restored multi-view consensus of the photos), with the model's depth
@@ -248,6 +285,7 @@ class RecGS(Method):
         on from the current model and its Adam state, so no steps are thrown away."""
         if restore:
             self.trainer.restore(self.plain)
+        self.light_gain = torch.ones(3)
         self._set_maps({})  # targets = the captured images
         self.misses = 0
         self.drop_reason = why
@@ -321,7 +359,8 @@ class RecGS(Method):
 
     def summary(self) -> dict:
         return {**super().summary(), "caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,
-                "psnr_heldout_plain": (self.plain or {}).get("score"), "colour_gain": self.gain}
+                "psnr_heldout_plain": (self.plain or {}).get("score"), "colour_gain": self.gain,
+                "light_gain": [round(float(x), 4) for x in self.light_gain] if self._lightfield else None}
 
     # --- checkpoints -----------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -331,7 +370,7 @@ class RecGS(Method):
             "rec_history": self.rec_history, "next_due": self.next_due, "stage": self.stage,
             "plain": None if self.plain is None else {
                 **self.plain, "params": {n: v.cpu() for n, v in self.plain["params"].items()}},
-            "misses": self.misses, "drop_reason": self.drop_reason,
+            "misses": self.misses, "drop_reason": self.drop_reason, "light_gain": self.light_gain.clone(),
         }
         return s
 
@@ -343,6 +382,8 @@ class RecGS(Method):
         self.plain = cs.get("plain")
         # checkpoints written before the do-no-harm tests have none of these
         self.misses, self.drop_reason = cs.get("misses", 0), cs.get("drop_reason")
+        if "light_gain" in cs:
+            self.light_gain = cs["light_gain"].clone()
         if self.dropped:
             self._plain_loss()
         self._set_maps({int(i): m.to(self.trainer.device) for i, m in cs["maps"].items()})
