@@ -61,7 +61,9 @@ def test_zip_holds_the_addon_only(extension_zip):
     names = zipfile.ZipFile(extension_zip).namelist()
     assert "blender_manifest.toml" in names and "__init__.py" in names
     assert "recgs_addon/core/io/ply.py" in names and "recgs_addon/blender/operators.py" in names
-    for banned in ("tests/", "docs/", "data/", ".ci/", "tools/", "benchmarks/", ".venv/", "scripts/"):
+    # ".git" and ".venv" without a slash: in a git worktree (or submodule) .git is a file, and a
+    # worktree's .venv may be a symlink
+    for banned in ("tests/", "docs/", "data/", ".ci/", "tools/", "benchmarks/", ".venv", "scripts/", ".git"):
         assert not any(n.startswith(banned) for n in names), banned
     assert not any("__pycache__" in n for n in names)
 

@@ -4,6 +4,7 @@ the .blend, the batch script and the panel snapshot tool."""
 import importlib.util
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -187,6 +188,15 @@ def test_operator_errors_report_instead_of_raising(session, tmp_path, monkeypatc
     s.mode = "3dgs"
     monkeypatch.setattr(jobs, "missing_modules", lambda names: list(names))
     refused(bpy.ops.recgs.train, r"needs the training engine: click Install Training Engine")
+    # a package missing in the Python that runs jobs: the message names that Python, Blender's
+    # own or the one chosen in the preferences
+    (tmp_path / "photos").mkdir()
+    s.photo_dir = str(tmp_path / "photos")
+    refused(bpy.ops.recgs.reconstruct, r"pycolmap in Blender's Python \(" + re.escape(sys.executable))
+    monkeypatch.setattr(jobs, "_worker_python", str(tmp_path / "other" / "python"))
+    refused(bpy.ops.recgs.reconstruct, r"pycolmap in the Python chosen in the RecGS preferences \("
+            + re.escape(str(tmp_path / "other" / "python")))
+    s.photo_dir = ""
     monkeypatch.undo()
     # no Gaussian object selected
     bpy.ops.object.select_all(action="DESELECT")

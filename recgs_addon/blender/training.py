@@ -107,8 +107,10 @@ def _check_free() -> None:
 def _check_modules(*names: str, what: str) -> None:
     missing = jobs.missing_modules(names)
     if missing:
-        raise WorkflowError(f"{what} needs the Python package(s) {', '.join(missing)} in Blender's Python "
-                            f"({sys.executable}); see the user guide, 'Installing the dependencies'")
+        python = jobs.worker_python()
+        which = "Blender's Python" if python == sys.executable else "the Python chosen in the RecGS preferences"
+        raise WorkflowError(f"{what} needs the Python package(s) {', '.join(missing)} in {which} ({python}), "
+                            "which runs RecGS jobs")
 
 
 # -- starting jobs ----------------------------------------------------------------------------

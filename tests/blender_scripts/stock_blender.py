@@ -2,7 +2,8 @@
 numpy it brings), run by tests/test_blender_versions.py in a fresh user profile
 (BLENDER_USER_RESOURCES):
 
-    python stock_blender.py ZIP SCENE_DIR OUT_DIR [--render] [--engine ok|unavailable] [--train-steps N]
+    python stock_blender.py ZIP SCENE_DIR OUT_DIR [--render] [--engine ok|unavailable]
+                            [--worker-python PYTHON] [--train-steps N]
 
 Install the extension zip with Blender's own installer and enable it, import the COLMAP
 survey, check the EEVEE preview (its geometry nodes instance every Gaussian; ``--render``
@@ -12,7 +13,9 @@ holds exactly the Gaussians left, disable and re-enable twice. With ``--engine``
 operator's timer function is stepped by hand, the bpy module has no event loop) and, when
 the engine is expected (``ok``), train N steps in the background following progress, then
 start again and cancel. ``unavailable``: the install must fail with a clear message and
-leave nothing behind.
+leave nothing behind. ``--worker-python``: instead of the engine, choose an existing Python
+that holds torch in the add-on's preferences (*Python with torch*), then train and cancel the
+same way; the job runs in that Python, Blender's own never imports torch.
 
 Each step prints one line ``STEP {"step": ..., "seconds": ..., "detail": ...}``; the first
 failure prints ``FAIL {...}`` with the traceback and exits 1. The last line is ``ALL-OK``.
@@ -235,6 +238,26 @@ def engine_install(expect):
     return f"{inst.message}, {size / 2**20:.0f} MiB; progress phases {' > '.join(phases)}"
 
 
+def worker_python(python):
+    """Preferences > Add-ons > RecGS > Python with torch: an existing Python runs the jobs."""
+    eng, jobs = mod("blender.engine"), mod("blender.jobs")
+    assert not eng.engine_ready(), "a training engine is ready before any was chosen"
+    prefs = bpy.context.preferences.addons[MODULE].preferences
+    prefs.worker_python = python
+    assert jobs.worker_python() == python, (jobs.worker_python(), python)
+    assert eng.engine_ready(), "the chosen Python is not taken as the engine"
+    assert not jobs.missing_modules(["torch"]), f"{python} has no torch (asked through the add-on)"
+    assert "torch" not in sys.modules, "Blender's own Python imported torch"
+    assert jobs.command("train")[0] == python, jobs.command("train")
+    path = jobs.job_env()["PYTHONPATH"].split(os.pathsep)
+    profile = os.environ.get("BLENDER_USER_RESOURCES", "")
+    assert profile and path[0] == str(jobs.PACKAGE_PARENT) and path[0].startswith(profile), \
+        f"the job would not run the installed extension's package: {path}"
+    blender_site = [p for p in path if p.startswith(profile) and "site-packages" in p]
+    assert not blender_site, f"Blender's site-packages (its Python's wheels) on the worker's path: {blender_site}"
+    return f"jobs run in {python} with the extension's package from {path[0]}"
+
+
 def train(steps):
     training = mod("blender.training")
     scene, obj = bpy.context.scene, bpy.context.active_object
@@ -252,6 +275,7 @@ def train(steps):
     assert seen, "no progress seen"
     assert os.path.isfile(os.path.join(s.out_dir, "point_cloud.ply"))
     obj = bpy.data.objects[obj.name]
+    assert "torch" not in sys.modules, "Blender's own Python imported torch"
     return f"{steps} steps, progress at iterations {seen}, {len(obj.data.vertices)} Gaussians; {s.message}"
 
 
@@ -273,6 +297,7 @@ def train_cancel():
     assert cancelled_at is not None, "no progress before the job ended"
     assert s.status == "CANCELLED", f"{s.status}: {s.message}"
     assert os.path.isfile(os.path.join(s.out_dir, "checkpoint.pt")), "no checkpoint after cancel"
+    assert "torch" not in sys.modules, "Blender's own Python imported torch"
     return f"cancelled after iteration {cancelled_at}, stopped at {s.iteration}: {s.message}"
 
 
@@ -280,6 +305,7 @@ def main(argv):
     zip_path, scene_dir, out_dir = argv[:3]
     render = "--render" in argv
     expect = argv[argv.index("--engine") + 1] if "--engine" in argv else None
+    worker = argv[argv.index("--worker-python") + 1] if "--worker-python" in argv else None
     steps = int(argv[argv.index("--train-steps") + 1]) if "--train-steps" in argv else 50
     os.makedirs(out_dir, exist_ok=True)
     bpy.context.scene.render.filepath = os.path.join(out_dir, "")
@@ -296,6 +322,10 @@ def main(argv):
         if expect == "ok":
             step("train", train, steps)
             step("cancel", train_cancel)
+    if worker:
+        step("worker_python", worker_python, worker)
+        step("train", train, steps)
+        step("cancel", train_cancel)
     addon_utils.disable(MODULE, default_set=True)
     print("ALL-OK", flush=True)
 
