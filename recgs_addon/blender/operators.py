@@ -21,8 +21,9 @@ from . import gaussian_object as gobj
 
 
 def _missing_dependency(exc: ImportError) -> str:
-    return (f"RecGS needs the Python package '{exc.name}', which this Blender's Python lacks. "
-            "See the README (Installing the dependencies).")
+    return (f"RecGS needs the Python package '{exc.name}', which this Blender's Python lacks. The "
+            "extension zip for your platform bundles it: reinstall the zip made for this system "
+            "(README, 'Using it in Blender').")
 
 
 def _make_active(view_layer, obj) -> None:
