@@ -105,6 +105,9 @@ def add_train_arguments(p) -> None:
     g.add_argument("--lf-tau", type=float, default=None, help="lightfield: dead band in log light (default 0.02)")
     g.add_argument("--consensus-stat", choices=["mean", "median", "min", "quantile"], default=None,
                    help="consensus: the per-pixel statistic over the views that see it (default mean)")
+    g.add_argument("--fit-loss", choices=["l1", "l2"], default=None,
+                   help="recgs: data term of the recurrences: l1 (the paper; fits the views' median) or l2 "
+                        "(their mean; no SSIM term)")
     g.add_argument("--robust-k", type=float, default=None,
                    help="recgs: leave out of the loss pixels brighter than the render by more than k robust "
                         "sigmas (1.5 in the trials; default 0 = the paper's plain loss, see docs/caustics.md)")
@@ -195,7 +198,7 @@ def run_train(args) -> int:
                            recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,
                            recurrence_tol=args.recurrence_tol, robust_k=args.robust_k,
                            estimator=args.estimator, consensus_stat=args.consensus_stat,
-                           lf_lambda=args.lf_lambda, lf_tau=args.lf_tau,
+                           lf_lambda=args.lf_lambda, lf_tau=args.lf_tau, fit_loss=args.fit_loss,
                            gain_restore=None if args.gain_restore is None else args.gain_restore == "on")
             ccfg = CausticConfig(**{k: v for k, v in caustic.items() if v is not None})
         init = read_gaussian_ply(args.init_ply) if args.init_ply and not args.resume else None
