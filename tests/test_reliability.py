@@ -152,3 +152,64 @@ def test_second_job_on_a_busy_folder_refuses_and_a_killed_job_frees_it(tmp_path)
         holder.wait()
     with folder_lock(tmp_path):                              # the kill left no stale lock
         pass
+
+
+# ------------------------------------------------------------------ settings no run can use
+
+@pytest.mark.parametrize("argv,msg", [
+    (["--iterations", "-5"], "iterations must be at least 1, got -5"),
+    (["--iterations", "0"], "iterations must be at least 1, got 0"),
+    (["--max-minutes", "nan"], "the time limit must be a number of minutes above 0, got nan"),
+    (["--max-minutes", "-1"], "the time limit must be a number of minutes above 0, got -1.0"),
+    (["--holdout-every", "-1"], "holdout every must be 0 (hold out none) or a positive number, got -1"),
+    (["--seed", "-1"], "seed must be a whole number from 0 to 2^64 - 1, got -1"),
+    (["--seed", "100000000000000000000000"], "seed must be a whole number from 0 to 2^64 - 1"),
+    (["--checkpoint-every", "nan"], "--checkpoint-every must be a number of seconds >= 0, got nan"),
+    (["--checkpoint-every", "-5"], "--checkpoint-every must be a number of seconds >= 0, got -5.0"),
+    (["--mode", "recgs", "--warmup", "-1"], "warmup must be 0 or more steps, got -1"),
+    (["--mode", "recgs", "--max-recurrences", "-1"], "max recurrences must be 0 or more, got -1"),
+    (["--mode", "recgs", "--recurrence-tol", "nan"], "recurrence tolerance must be a number >= 0, got nan"),
+])
+def test_train_refuses_settings_no_run_can_use(tmp_path, capsys, argv, msg):
+    """Regression (outside trial): these were accepted: a NaN time limit or tolerance ran on
+    with the limit ignored, a negative iteration count 'finished' at step 0, a negative seed
+    or one above 2^64 ended in a traceback from numpy or torch. Each is now one error line,
+    before any data is read or any folder made."""
+    from recgs_addon.cli import main
+    code = main(["train", str(ROOT / "data" / "sample"), "--out", str(tmp_path / "out"), "--eager", *argv])
+    err = capsys.readouterr().err
+    assert code == 1 and f"error: {msg}" in err and "Traceback" not in err, err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("command", ["train", "render"])
+def test_an_output_folder_that_is_a_file_or_cannot_be_made(tmp_path, capsys, command):
+    """Regression (outside trial): ``--out`` naming a file, or a folder that cannot be created,
+    ended in a FileExistsError / FileNotFoundError traceback; now one line naming it."""
+    from recgs_addon.cli import main
+    from recgs_addon.core.io.ply import write_gaussian_ply
+    sample = ROOT / "data" / "sample"
+    model = tmp_path / "m.ply"
+    write_gaussian_ply(model, gaussians(20))
+    head = ["train", str(sample)] if command == "train" else ["render", str(model), str(sample)]
+    tail = ["--eager", "--iterations", "1"] if command == "train" else ["--eager", "--names", "view_001.png"]
+    afile = tmp_path / "notes.txt"
+    afile.write_text("mine")
+    for out, msg in ((afile, f"{afile}: is a file, not a folder"),
+                     (afile / "out", f"{afile / 'out'}: cannot create the output folder: Not a directory")):
+        code = main(head + ["--out", str(out)] + tail)
+        err = capsys.readouterr().err
+        assert code == 1 and f"error: {msg}" in err and "Traceback" not in err, err
+    assert afile.read_text() == "mine"
+
+
+def test_render_refuses_downscale_zero(tmp_path, capsys):
+    """Regression (outside trial): ``render --downscale 0`` ended in a traceback."""
+    from recgs_addon.cli import main
+    from recgs_addon.core.io.ply import write_gaussian_ply
+    write_gaussian_ply(tmp_path / "m.ply", gaussians(20))
+    code = main(["render", str(tmp_path / "m.ply"), str(ROOT / "data" / "sample"), "--out", str(tmp_path / "r"),
+                 "--downscale", "0"])
+    err = capsys.readouterr().err
+    assert code == 1 and "error: --downscale must be an integer >= 1, got 0" in err and "Traceback" not in err
+    assert not (tmp_path / "r").exists()

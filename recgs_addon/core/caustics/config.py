@@ -6,6 +6,7 @@ the ground-truth photos: the upper bound), ``recgs`` (the recurrent loop, ``recg
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from ..errors import RecGSError
@@ -74,3 +75,11 @@ class CausticConfig:
             raise RecGSError(f"robust trimming k must be >= 0 (0 = off), got {self.robust_k}")
         if self.recurrence_steps < 1:
             raise RecGSError(f"recurrence steps must be at least 1, got {self.recurrence_steps}")
+        if self.warmup < 0:
+            raise RecGSError(f"warmup must be 0 or more steps, got {self.warmup}")
+        if self.max_recurrences < 0:
+            raise RecGSError(f"max recurrences must be 0 or more, got {self.max_recurrences}")
+        if not self.recurrence_tol >= 0 or math.isinf(self.recurrence_tol):   # NaN fails the first test
+            raise RecGSError(f"recurrence tolerance must be a number >= 0, got {self.recurrence_tol}")
+        if not math.isfinite(self.robust_k):
+            raise RecGSError(f"robust trimming k must be a number >= 0 (0 = off), got {self.robust_k}")

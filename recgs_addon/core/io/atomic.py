@@ -43,14 +43,27 @@ def describe(exc: OSError) -> str:
     return exc.strerror or str(exc)
 
 
+def make_folder(folder: str | os.PathLike, what: str = "output folder") -> Path:
+    """Create ``folder`` (and its parents) if needed; :class:`OutputError` naming it when it is
+    a file or cannot be created."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"{folder}: is a file, not a folder (choose another {what})")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{folder}: cannot create the {what}: {describe(exc)}") from exc
+    return folder
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike, what: str = "file") -> Iterator[Path]:
     """``with atomic_path(p) as tmp: write(tmp)``: ``p`` is replaced only when the block ends
     without an exception (``what`` names the output in messages: "checkpoint", "PLY", ...)."""
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+    make_folder(path.parent, "folder")
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
         yield tmp
         with open(tmp, "rb+") as f:   # the writer may have closed it: flush what it wrote
             os.fsync(f.fileno())
