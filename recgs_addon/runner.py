@@ -211,6 +211,9 @@ def run_train(args) -> int:
         trainer = method.trainer
         if state is not None:
             method.load_state_dict(state)
+        # every image the run uses is read now, so a file that does not decode stops the job
+        # before it writes anything (training would read them all anyway; they stay cached)
+        trainer.data.load_all(trainer.level())
     except RecGSError as exc:
         _emit("error", message=str(exc))
         print(f"error: {exc}", file=sys.stderr)
@@ -233,9 +236,6 @@ def run_train(args) -> int:
 
 def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator) -> int:
     from .core.io.ply import write_gaussian_ply
-    from .core.outputs.diagnostics import support_summary, view_support
-    from .core.outputs.exports import write_outputs
-    from .core.outputs.report import write_run_report
     from .core.train.checkpoint import save_checkpoint
 
     stop = {"signal": None}
@@ -286,6 +286,20 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
         trainer.compiler.close()
         for s, h in old.items():
             signal.signal(s, h)
+    try:
+        return _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint)
+    except RecGSError as exc:   # a full disk or an unwritable folder at the end: one line, the last checkpoint kept
+        _emit("error", message=f"{exc} (training ended at iteration {trainer.step}; the last checkpoint is kept)")
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+
+def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint) -> int:
+    """The end of a run: the last checkpoint, the output images, metrics and report."""
+    from .core.outputs.diagnostics import support_summary, view_support
+    from .core.outputs.exports import write_outputs
+    from .core.outputs.report import write_run_report
+
     checkpoint(trainer)
     outputs = write_outputs(method, out)
     if reason == "stopped":

@@ -460,6 +460,48 @@ def test_job_with_an_image_that_does_not_decode_stops_with_one_line(small_scene,
     assert events[-1]["event"] == "error" and victim.name in events[-1]["message"]
 
 
+def test_an_image_the_run_would_meet_late_stops_it_before_it_writes(small_scene, tmp_path):
+    """Regression (outside trial): a cut-off PNG that a short run never trained on was first
+    read while the run wrote its outputs: a traceback, and a checkpoint, a PLY and half the
+    renders left in the folder. Every image is now read before the job writes anything: a
+    new job leaves no folder, and a resume leaves the last checkpoint as it was."""
+    import shutil
+
+    scene = tmp_path / "scene"
+    shutil.copytree(small_scene, scene)
+    out = tmp_path / "out"
+    assert _run(_train_cmd(scene, out, "--iterations", "2")).returncode == 0
+    files = sorted(p.relative_to(out) for p in out.rglob("*"))
+    checkpoint = (out / "checkpoint.pt").read_bytes()
+    victim = sorted((scene / "images").iterdir())[-1]          # a training view
+    victim.write_bytes(victim.read_bytes()[:300])
+    for target, extra in ((tmp_path / "fresh", ("--iterations", "1")), (out, ("--resume", "--iterations", "4"))):
+        r = _run(_train_cmd(scene, target, *extra))
+        assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-3000:]
+        err = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+        assert err == [f"error: {victim}: cannot decode image pixels (Read error: hit end of file in png reader)"], err
+    assert not (tmp_path / "fresh").exists()
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == files
+    assert (out / "checkpoint.pt").read_bytes() == checkpoint
+
+
+def test_a_failure_while_writing_the_outputs_is_one_line_and_keeps_the_checkpoint(small_scene, tmp_path):
+    """Outputs written at the end of a run (renders, metrics, report) that cannot be written
+    end the job with one error line, exit code 1, and the final checkpoint in place."""
+    from recgs_addon.core.train.checkpoint import load_checkpoint
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "renders").write_text("a file where the renders folder goes")
+    r = _run(_train_cmd(small_scene, out, "--iterations", "3"))
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-3000:]
+    err = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert err == [f"error: {out / 'renders'}: is a file, not a folder (choose another folder)"], err
+    assert load_checkpoint(out / "checkpoint.pt")["step"] == 3
+    events = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
+    assert events[-1]["event"] == "error" and "the last checkpoint is kept" in events[-1]["message"]
+
+
 # ------------------------------------------------------------------ NaN / Inf guards
 
 def test_nan_loss_skips_the_step_then_stops_the_run(small_scene, monkeypatch):

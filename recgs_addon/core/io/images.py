@@ -64,6 +64,10 @@ def read_image(path: str | os.PathLike, downscale: int = 1) -> np.ndarray:
     buf = oiio.ImageBuf(str(path))
     if buf.has_error or buf.spec().width <= 0:
         raise ImageError(f"{path}: cannot read image ({buf.geterror() or 'unknown format'})")
+    # decode every pixel now: a file cut short fails here, once (read lazily, a resize of it
+    # retries the missing tiles over and over, and OpenImageIO prints each failure)
+    if not buf.read(0, 0, True):
+        raise ImageError(f"{path}: cannot decode image pixels ({_first_line(buf.geterror())})")
     if downscale != 1:
         if downscale < 1 or int(downscale) != downscale:
             raise ImageError(f"{path}: downscale must be an integer >= 1, got {downscale}")
