@@ -2,7 +2,7 @@
 
 Images are returned as float32 arrays of shape (H, W, 3) (RGB; grey is expanded, alpha
 dropped). 8- and 16-bit integer files (PNG, JPEG, TIFF) are normalised to [0, 1]; float
-files (EXR, float TIFF) keep their values.
+files (EXR, float TIFF) keep their values, and one with NaN or infinite pixels is refused.
 """
 from __future__ import annotations
 
@@ -92,6 +92,11 @@ def read_image(path: str | os.PathLike, downscale: int = 1) -> np.ndarray:
         arr = np.repeat(arr[:, :, :1], 3, axis=2)
     elif c >= 3:
         arr = arr[:, :, :3]
+    bad = ~np.isfinite(arr).all(axis=2)
+    if bad.any():   # float files (EXR, float TIFF) can hold them; no loss or score survives one
+        y, x = np.argwhere(bad)[0]
+        raise ImageError(f"{path}: {int(bad.sum())} pixels are NaN or infinite (the first at x={x}, y={y}); "
+                         "replace them before training on this image")
     return np.ascontiguousarray(arr, dtype=np.float32)
 
 
