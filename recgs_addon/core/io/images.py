@@ -34,6 +34,8 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
     """(width, height) of an image file, read from its header only."""
     oiio = _oiio()
     path = Path(path)
+    if path.is_dir():
+        raise ImageError(f"{path}: is a folder, not an image file")
     if not path.is_file():
         raise ImageError(f"{path}: image file is missing")
     inp = oiio.ImageInput.open(str(path))
@@ -59,6 +61,8 @@ def read_image(path: str | os.PathLike, downscale: int = 1) -> np.ndarray:
     """
     oiio = _oiio()
     path = Path(path)
+    if path.is_dir():
+        raise ImageError(f"{path}: is a folder, not an image file")
     if not path.is_file():
         raise ImageError(f"{path}: image file is missing")
     buf = oiio.ImageBuf(str(path))
