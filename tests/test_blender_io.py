@@ -270,3 +270,56 @@ def test_os_errors_are_reported_not_raised(tmp_path, bpy_session, monkeypatch):
     with pytest.raises(RuntimeError, match="Permission denied"):
         bpy.ops.recgs.import_ply(filepath=str(tmp_path / "g.ply"))
     assert _scene_state(bpy) == before
+
+
+# --- the .blend, written whole or not at all ----------------------------------------------------
+
+def _blend_objects(path):
+    """Object names in a saved .blend (read without opening it)."""
+    with bpy.data.libraries.load(str(path)) as (data_from, _):
+        return sorted(data_from.objects)
+
+
+def test_blend_saved_through_a_temporary_and_the_previous_kept_on_failure(tmp_path, bpy_session, monkeypatch):
+    """The .blend the import and batch commands write appears whole or not at all, like every
+    other output: a save that fails (a full disk when the file is renamed into place, or
+    Blender's own write failing half way) leaves the previous file as it was, no temporary
+    and no Blender '@' file, and says so naming the file. No .blend1 backup appears."""
+    import errno
+    import os
+
+    from recgs_addon.blender import blendfile
+    from recgs_addon.core.io.atomic import OutputError
+
+    path = tmp_path / "scene.blend"
+    bpy.ops.mesh.primitive_cube_add()
+    blendfile.save_blend(path)
+    bpy.ops.mesh.primitive_uv_sphere_add()
+    blendfile.save_blend(path)                                # over the first one
+    assert _blend_objects(path) == ["Cube", "Sphere"] and sorted(p.name for p in tmp_path.iterdir()) == ["scene.blend"]
+    assert bpy.data.filepath == ""                            # a copy: the session keeps its own name
+    before = path.read_bytes()
+    bpy.ops.mesh.primitive_monkey_add()
+
+    def full_disk(src, dst):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    monkeypatch.setattr(os, "replace", full_disk)
+    with pytest.raises(OutputError, match=r"scene.blend: could not write the .blend file: the disk is full "
+                                          r"\(the previous one is kept\)"):
+        blendfile.save_blend(path)
+    monkeypatch.undo()
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["scene.blend"]
+
+    class HalfWritten:      # Blender writes NAME@, then fails
+        class ops:
+            class wm:
+                @staticmethod
+                def save_as_mainfile(filepath, **kw):
+                    with open(f"{filepath}@", "wb") as f:
+                        f.write(b"BLENDER-v500 cut short")
+                    raise RuntimeError(f"Error: Cannot write file {filepath}@: No space left on device\n")
+    monkeypatch.setattr(blendfile, "bpy", HalfWritten)
+    with pytest.raises(OutputError, match=r"scene.blend: could not write the .blend file: Cannot write file "
+                                          r".*scene.blend: No space left on device \(the previous one is kept\)"):
+        blendfile.save_blend(path)
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["scene.blend"]

@@ -213,3 +213,56 @@ def test_render_refuses_downscale_zero(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 1 and "error: --downscale must be an integer >= 1, got 0" in err and "Traceback" not in err
     assert not (tmp_path / "r").exists()
+
+
+def test_copied_outputs_on_a_full_disk_keep_the_previous_copy(tmp_path, monkeypatch):
+    """Batch mode copies the job's report and caustic-free images, and Export Caustic-Free
+    Images copies the images, through core/io/atomic.copy_file: a disk that fills during the
+    copy leaves the previous copy (or none) and no partial file."""
+    import shutil
+
+    from recgs_addon.core.io.atomic import copy_file, copy_tree
+    src = tmp_path / "job"
+    (src / "decaustic").mkdir(parents=True)
+    for i in range(3):
+        write_image(src / "decaustic" / f"v{i}.png", np.full((8, 8, 3), 0.1 * i, np.float32))
+    out = tmp_path / "out"
+    copy_tree(src / "decaustic", out / "decaustic")
+    before = {p.name: p.read_bytes() for p in (out / "decaustic").iterdir()}
+    write_image(src / "decaustic" / "v1.png", np.ones((8, 8, 3), np.float32))
+
+    def full_disk(*a, **k):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    monkeypatch.setattr(os, "sendfile", full_disk)          # shutil's fast copy on Linux
+    monkeypatch.setattr(shutil, "copyfileobj", full_disk)  # ... and its fallback
+    with pytest.raises(OutputError, match=r"v0.png: could not write the image: the disk is full \(the previous one is kept\)"):
+        copy_tree(src / "decaustic", out / "decaustic", "image")
+    with pytest.raises(OutputError, match=r"new.md: could not write the report: the disk is full$"):
+        copy_file(src / "decaustic" / "v1.png", out / "new.md", "report")
+    monkeypatch.undo()
+    assert {p.name: p.read_bytes() for p in (out / "decaustic").iterdir()} == before
+    assert leftovers(out / "decaustic") == [] and sorted(p.name for p in out.iterdir()) == ["decaustic"]
+
+
+def test_import_command_refuses_an_output_folder_that_is_a_file(tmp_path):
+    """Regression (outside trial): ``import SCENE --out FILE`` ended in a FileExistsError traceback."""
+    pytest.importorskip("bpy")
+    afile = tmp_path / "notes.txt"
+    afile.write_text("mine")
+    r = subprocess.run([sys.executable, "-m", "recgs_addon", "import", str(ROOT / "data" / "sample"), "--out", str(afile)],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert f"error: {afile}: is a file, not a folder" in r.stderr and afile.read_text() == "mine"
+
+
+def test_import_command_writes_whole_files_and_no_backups(tmp_path):
+    """import writes scene.blend (through a temporary, saved as a copy: no .blend1 backup when
+    it replaces an earlier one), point_cloud.ply and the report, and no temporaries."""
+    pytest.importorskip("bpy")
+    out = tmp_path / "imported"
+    for _ in range(2):
+        r = subprocess.run([sys.executable, "-m", "recgs_addon", "import", str(ROOT / "data" / "sample"),
+                            "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr[-2000:]
+    assert sorted(p.name for p in out.iterdir()) == ["point_cloud.ply", "report.json", "report.md", "scene.blend"]
+    assert len(read_gaussian_ply(out / "point_cloud.ply")) == 5000

@@ -79,3 +79,21 @@ def atomic_path(path: str | os.PathLike, what: str = "file") -> Iterator[Path]:
             pass
         except OSError:
             pass
+
+
+def copy_file(src: str | os.PathLike, dst: str | os.PathLike, what: str = "file") -> Path:
+    """Copy ``src`` to ``dst`` through :func:`atomic_path` (a copy cut short by a full disk
+    leaves the previous ``dst``, or none, and no partial file)."""
+    import shutil
+
+    dst = Path(dst)
+    with atomic_path(dst, what) as tmp:
+        shutil.copy2(src, tmp)
+    return dst
+
+
+def copy_tree(src: str | os.PathLike, dst: str | os.PathLike, what: str = "file") -> list[Path]:
+    """Copy every file under ``src`` to the same place under ``dst`` with :func:`copy_file`."""
+    src, dst = Path(src), Path(dst)
+    return [copy_file(p, dst / p.relative_to(src), what) for p in sorted(src.rglob("*")) if p.is_file()]
+
