@@ -323,3 +323,22 @@ def test_blend_saved_through_a_temporary_and_the_previous_kept_on_failure(tmp_pa
                                           r".*scene.blend: No space left on device \(the previous one is kept\)"):
         blendfile.save_blend(path)
     assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["scene.blend"]
+
+
+def test_export_operator_on_a_full_disk_reports_and_keeps_the_previous_export(tmp_path, bpy_session, monkeypatch):
+    """Export 3DGS PLY when the disk fills half way: the operator reports the full disk in the
+    UI (RuntimeError headless), the previous export still reads, no temporary is left."""
+    import builtins
+
+    from recgs_addon.core.io.ply import read_gaussian_ply, write_gaussian_ply
+    from test_reliability import DiskFullAfter, leftovers
+
+    write_gaussian_ply(tmp_path / "in.ply", random_gaussians(n=2000, degree=1))
+    assert bpy.ops.recgs.import_ply(filepath=str(tmp_path / "in.ply")) == {"FINISHED"}
+    out = tmp_path / "exports" / "model.ply"
+    write_gaussian_ply(out, random_gaussians(n=7, degree=0))
+    monkeypatch.setattr(builtins, "open", DiskFullAfter(out.parent, 5000))
+    with pytest.raises(RuntimeError, match=r"model.ply: could not write the PLY: the disk is full \(the previous one is kept\)"):
+        bpy.ops.recgs.export_ply(filepath=str(out))
+    monkeypatch.undo()
+    assert len(read_gaussian_ply(out)) == 7 and leftovers(out.parent) == []

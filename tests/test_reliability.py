@@ -266,3 +266,43 @@ def test_import_command_writes_whole_files_and_no_backups(tmp_path):
         assert r.returncode == 0, r.stderr[-2000:]
     assert sorted(p.name for p in out.iterdir()) == ["point_cloud.ply", "report.json", "report.md", "scene.blend"]
     assert len(read_gaussian_ply(out / "point_cloud.ply")) == 5000
+
+
+# ------------------------------------------------------------------ a full disk inside a job and an operator
+
+@pytest.fixture(scope="module")
+def small_survey(tmp_path_factory):
+    from conftest import write_rendered_scene
+    root = tmp_path_factory.mktemp("rel") / "scene"
+    write_rendered_scene(root, n_views=8, width=40, height=30, n_gauss=200)
+    return root
+
+
+def test_a_job_whose_disk_fills_during_a_checkpoint_keeps_the_previous_one(small_survey, tmp_path, capsys, monkeypatch):
+    """The disk fills in the middle of the job's second checkpoint (it checkpoints every step
+    here): the job stops with one error line saying so, exit code 1, and the first checkpoint
+    (and the PLY written with it) still load; no temporary is left."""
+    from recgs_addon.cli import main
+    from recgs_addon.core.train import checkpoint as ckpt_mod
+    out = tmp_path / "out"
+    real, calls = ckpt_mod.save_checkpoint, []
+
+    def second_fills_the_disk(path, state):
+        calls.append(state["step"])
+        if len(calls) < 2:
+            return real(path, state)
+        disk = DiskFullAfter(out, 2000)
+        monkeypatch.setattr(builtins, "open", disk)
+        try:
+            return real(path, state)
+        finally:
+            monkeypatch.setattr(builtins, "open", disk.real)
+    monkeypatch.setattr(ckpt_mod, "save_checkpoint", second_fills_the_disk)
+    code = main(["train", str(small_survey), "--out", str(out), "--eager", "--iterations", "20",
+                 "--checkpoint-every", "0", "--holdout-every", "4"])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
+    assert code == 1 and err == [f"error: {out / 'checkpoint.pt'}: could not write the checkpoint: the disk is full "
+                                 "(the previous one is kept)"], err
+    assert load_checkpoint(out / "checkpoint.pt")["step"] == calls[0] == 1 and calls[1] == 2
+    assert len(read_gaussian_ply(out / "point_cloud.ply")) > 0
+    assert leftovers(out) == []
