@@ -350,46 +350,6 @@ def test_render_command(small_scene, tmp_path):
     assert done["views"] == 2 and done["mean_psnr"] > 5
 
 
-@pytest.mark.slow
-def test_long_run_stays_finite():
-    """Hard schedule (vanilla: densification, opacity resets, SH schedule) on the sample survey:
-    no NaN/Inf in parameters, gradients or Adam state at any checked step. CI runs 1500 steps at
-    a quarter resolution (at most 30k Gaussians); RECGS_LONG_STEPS=20000 runs the issue's full length."""
-    steps = int(os.environ.get("RECGS_LONG_STEPS", "1500"))
-    cfg = preset("vanilla", iterations=steps, downscale=4, eval_every=500, compiled=False, budget=30_000,
-                 densify_until=min(15_000, steps), opacity_reset_every=min(3000, max(steps // 3, 300)))
-    tr = make_trainer(ROOT / "data" / "sample", cfg)
-    bad = []
-    step_fn = tr.optimizer.step
-
-    def checked_step(*a, **k):
-        if tr.step % 25 == 0:
-            for name, p in tr.params.items():
-                if p.grad is not None and not torch.isfinite(p.grad).all():
-                    bad.append(("grad", name, tr.step))
-        return step_fn(*a, **k)
-
-    tr.optimizer.step = checked_step
-    orig_step = tr.train_step
-
-    def after():
-        loss = orig_step()
-        if tr.step % 25 == 0:
-            for name, p in tr.params.items():
-                if not torch.isfinite(p).all():
-                    bad.append(("param", name, tr.step))
-            for st in tr.optimizer.state.values():
-                for key in ("exp_avg", "exp_avg_sq"):
-                    if key in st and not torch.isfinite(st[key]).all():
-                        bad.append(("adam", key, tr.step))
-        return loss
-    tr.train_step = after
-    tr.run()
-    assert tr.step == steps
-    assert not bad, bad[:5]
-    assert np.isfinite(tr.evaluate()["psnr"])
-
-
 def test_keep_best_ends_with_the_best_held_out_model(small_scene):
     """The run ends with the model that scored best on the held-out photos, at an evaluation
     not right after a densification; keep_best off ends with the last one."""
