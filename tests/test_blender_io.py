@@ -203,6 +203,9 @@ BAD_INPUTS = {  # case -> (text model?, scene kwargs, how to break it, expected 
                              "img_002.png: image is 50x40 but its COLMAP camera 1 is 64x48"),
     "unsupported camera model": (True, {}, _unsupported_model, "uses the EQUIRECTANGULAR model"),
     "empty point cloud": (False, {"n_points": 0}, lambda r: None, "the model has no 3D points"),
+    "image names a missing camera": (True, {}, lambda r: (r / "sparse/0/images.txt").write_text(
+        (r / "sparse/0/images.txt").read_text().replace(" 1 img_000.png", " 7 img_000.png")),
+        r"images.txt: line 5: image 1 \('img_000.png'\) names camera 7, which cameras.txt does not have"),
 }
 
 
@@ -237,6 +240,18 @@ def test_bad_ply_reports_and_leaves_scene(tmp_path, bpy_session):
     before = _scene_state(bpy)
     with pytest.raises(RuntimeError, match="nuage de points é.ply: not a 3D Gaussian Splatting PLY"):
         bpy.ops.recgs.import_ply(filepath=str(p))
+    assert _scene_state(bpy) == before
+
+
+def test_ply_with_only_nan_rows_reports_and_leaves_scene(tmp_path, bpy_session):
+    from recgs_addon.core.io.ply import write_gaussian_ply
+
+    g = random_gaussians(n=10, degree=0)
+    g.logit_opacities[:] = np.nan
+    write_gaussian_ply(tmp_path / "void.ply", g)
+    before = _scene_state(bpy)
+    with pytest.raises(RuntimeError, match="void.ply: all 10 Gaussians have NaN or Inf values"):
+        bpy.ops.recgs.import_ply(filepath=str(tmp_path / "void.ply"))
     assert _scene_state(bpy) == before
 
 
