@@ -67,7 +67,7 @@ class CausticConfig:
             raise RecGSError(f"unknown caustic estimator {self.estimator!r} (choose from {', '.join(ESTIMATORS)})")
         if self.estimator == "consensus" and self.caustic_model != "additive":
             raise RecGSError("the consensus estimator makes additive caustic maps (caustic model additive)")
-        if self.lf_lambda < 0 or self.lf_tau < 0:
+        if not (0 <= self.lf_lambda < math.inf and 0 <= self.lf_tau < math.inf):   # NaN fails this too
             raise RecGSError(f"light-field TV weight and dead band must be >= 0, got {self.lf_lambda}, {self.lf_tau}")
         if self.fit_loss not in ("l1", "l2"):
             raise RecGSError(f"unknown fit loss {self.fit_loss!r} (l1 or l2)")
