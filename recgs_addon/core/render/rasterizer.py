@@ -32,6 +32,7 @@ import warnings
 from dataclasses import dataclass, field
 from typing import NamedTuple, Optional
 
+import numpy as np
 import torch
 
 from .projection import ALPHA_MIN, _index_rows, allow_variants, camera_centre, project_gaussians
@@ -178,6 +179,9 @@ class _Kernels(NamedTuple):
     forward: object
     backward: object
     compiled: bool
+    #: numba's whole-view kernels (:class:`.numba_kernels.NumbaKernels`): they replace the
+    #: per-chunk ones above for float32 renders (float64 ones take the eager kernels)
+    numba: object = None
 
 
 _KERNEL_CACHE: dict = {}
@@ -248,7 +252,7 @@ def get_kernels(compiled: Optional[bool]) -> _Kernels:
                 warnings.warn(f"numba kernels unavailable ({numba_kernels.error()!r}); using the eager rasterizer")
                 _KERNEL_CACHE["warned_numba"] = True
             return _Kernels(_chunk_forward, _chunk_backward, False)
-        return _Kernels(nk[0], nk[1], False)
+        return _Kernels(_chunk_forward, _chunk_backward, False, numba=nk)
     if "compiled" not in _KERNEL_CACHE:
         try:
             kern = _compiled_kernels()
@@ -312,6 +316,10 @@ class _Plan:
     slot_rows: Optional[torch.Tensor] = None     # (S,) int64
     slot_tiles: Optional[torch.Tensor] = None    # (S,) int64 tile of each slot
     pairs: int = 0
+    #: unchunked (numba's kernels): the intersections in (tile, depth) order, as the visible
+    #: row of each (M,) int32, and each tile's offset into them (n_tiles + 1,) int64
+    isect_rows: Optional[torch.Tensor] = None
+    tile_start: Optional[torch.Tensor] = None
 
 
 def _expand(counts: torch.Tensor):
@@ -372,7 +380,7 @@ def _row_spans_compiled(*args):
 
 
 def _build_plan(proj, width: int, height: int, tile_size: int, chunk_pairs: int,
-                compiled: bool = False) -> _Plan:
+                compiled: bool = False, chunked: bool = True) -> _Plan:
     ts = tile_size
     tiles_x = -(-width // ts)
     tiles_y = -(-height // ts)
@@ -381,6 +389,13 @@ def _build_plan(proj, width: int, height: int, tile_size: int, chunk_pairs: int,
     rows, tile = _tile_intersections(proj, width, height, ts, compiled)
     m = rows.shape[0]
     plan = _Plan(width, height, ts, tiles_x, tiles_y, n_vis, intersections=m)
+    if not chunked:   # numba's kernels walk each tile's list: no chunks, no padding
+        tile_sorted, perm = torch.sort(tile.to(torch.int32), stable=True)
+        plan.isect_rows = rows.index_select(0, perm).to(torch.int32)
+        plan.tile_start = torch.zeros(n_tiles + 1, dtype=torch.int64)
+        torch.cumsum(torch.bincount(tile_sorted, minlength=n_tiles), 0, out=plan.tile_start[1:])
+        plan.pairs = m * ts * ts
+        return plan
     if m == 0:
         plan.slot_rows = torch.zeros(0, dtype=torch.int64)
         plan.slot_tiles = torch.zeros(0, dtype=torch.int64)
@@ -536,6 +551,44 @@ class _Composite(torch.autograd.Function):
                 None, None, None, None, None)
 
 
+class _CompositeNumba(torch.autograd.Function):
+    """:class:`_Composite` through numba's kernels (float32): one kernel call over every tile
+    forward, one backward, nothing kept per pair (the backward replays each pixel's pass up to
+    where the forward stopped it: ``last``). Same inputs and output as :class:`_Composite`."""
+
+    @staticmethod
+    def forward(ctx, means2d_full, chol, opacity, values, pos64, ids, plan, nk):
+        n_c = values.shape[1]
+        ts = plan.tile_size
+        geo = torch.cat([chol, opacity.unsqueeze(1)], dim=1).detach().contiguous().numpy()
+        vals = values.detach().contiguous().numpy()
+        pos = pos64.detach().contiguous().numpy()
+        tile_start, rows = plan.tile_start.numpy(), plan.isect_rows.numpy()
+        out, last = nk.forward(tile_start, rows, pos, geo, vals, ts, plan.tiles_x, plan.tiles_y)
+        ctx.arrays = (tile_start, rows, pos, geo, vals, out, last)
+        ctx.plan = plan
+        ctx.nk = nk
+        ctx.n = means2d_full.shape[0]
+        ctx.save_for_backward(ids)
+        img = torch.from_numpy(out)[:, :plan.height, :plan.width].permute(1, 2, 0)
+        return img.contiguous()
+
+    @staticmethod
+    def backward(ctx, g_img):
+        (ids,) = ctx.saved_tensors
+        tile_start, rows, pos, geo, vals, out, last = ctx.arrays
+        plan = ctx.plan
+        ts = plan.tile_size
+        g_out = np.zeros(out.shape, np.float32)
+        g_out[:, :plan.height, :plan.width] = g_img.detach().permute(2, 0, 1).numpy()
+        d = torch.from_numpy(ctx.nk.backward(tile_start, rows, pos, geo, vals, ts, plan.tiles_x,
+                                             out, last, g_out))
+        ctx.arrays = None
+        d_means2d = torch.zeros(ctx.n, 2, dtype=torch.float32)
+        d_means2d.index_copy_(0, ids, d[0:2].t())
+        return (d_means2d, d[2:5].t(), d[5], d[_N_GEOM:].t(), None, None, None, None)
+
+
 # ----------------------------------------------------------------------------------------
 # Public entry point
 # ----------------------------------------------------------------------------------------
@@ -613,12 +666,19 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
     if means2d.requires_grad:
         means2d.retain_grad()
 
-    plan = _build_plan(proj, width, height, tile_size, chunk_pairs, kern.compiled)
-    acc = _Composite.apply(means2d, proj.chol.to(dtype), proj.opacity.to(dtype), values,
-                           proj.means2d.detach(), ids, plan, kern, low_memory)
+    use_numba = kern.numba is not None and dtype == torch.float32
+    plan = _build_plan(proj, width, height, tile_size, chunk_pairs, kern.compiled,
+                       chunked=not use_numba)
+    if use_numba:
+        acc = _CompositeNumba.apply(means2d, proj.chol.to(dtype), proj.opacity.to(dtype), values,
+                                    proj.means2d.detach(), ids, plan, kern.numba)
+    else:
+        acc = _Composite.apply(means2d, proj.chol.to(dtype), proj.opacity.to(dtype), values,
+                               proj.means2d.detach(), ids, plan, kern, low_memory)
     alpha = acc[..., 4]
     rgb = acc[..., 0:3] + (1.0 - alpha).unsqueeze(-1) * background
     stats = dict(visible=int(ids.shape[0]), intersections=plan.intersections,
-                 pairs=plan.pairs, chunks=len(plan.chunks), compiled=kern.compiled)
+                 pairs=plan.pairs, chunks=len(plan.chunks), compiled=kern.compiled,
+                 path="numba" if use_numba else ("compiled" if kern.compiled else "eager"))
     return RenderOutput(rgb=rgb, alpha=alpha, depth=acc[..., 3], means2d=means2d,
                         radii=proj.radii, stats=stats)
