@@ -748,3 +748,45 @@ def test_numba_is_deterministic_and_float64_stays_eager():
         assert torch.equal(x, y)
     out, _ = run(scene, torch.float64, compiled="numba")
     assert out.stats["path"] == "eager"      # numba's kernels are float32
+
+
+@needs_numba
+@pytest.mark.parametrize("deg, antialiased", [(0, False), (1, True), (2, False), (3, True)])
+def test_numba_projection_gradients_match_float64_autograd(deg, antialiased):
+    """numba's projection + colour kernel (hand-written backward) against torch autograd through
+    projection._project_rows and sh.eval_sh_colour in float64, on the same float32 inputs,
+    with random gradients on every output: each parameter's gradient to 1e-6 of its largest
+    (float32 rounding of the outputs and of the SH basis is all that may differ: ~1e-7)."""
+    from recgs_addon.core.model.sh import eval_sh_colour
+    from recgs_addon.core.render import projection
+
+    # spread 2: a third of the centres lie outside the frustum clamp (1.3 x the half-width)
+    scene = _rounded(make_scene(20 + deg, n=200, deg=3, scale=(0.005, 0.4), logit=(0.0, 3.0), spread=2.0))
+    p32 = torch_params(scene, torch.float32)
+    nk = rasterizer.get_kernels("numba").numba
+    vm = np.asarray(scene["viewmat"], np.float64)
+    K = np.asarray(scene["K"], np.float64)
+    w, h = scene["width"], scene["height"]
+    _, ids, _ = nk.cull(*(p.numpy() for p in p32[:4]), vm, K, w, h, 0.2, antialiased)
+    ids = torch.from_numpy(ids)
+    assert len(ids) > 50
+    rows32 = [p.index_select(0, ids).requires_grad_() for p in p32]
+    campos = projection.camera_centre(torch.from_numpy(vm)).numpy()
+    outs = rasterizer._ProjectNumba.apply(*rows32, (nk, deg, vm, K, campos, w, h, 0.2, antialiased))
+    rows64 = [r.detach().double().requires_grad_() for r in rows32]
+    q = projection._project_rows(*rows64[:4], torch.from_numpy(vm), torch.from_numpy(K), w, h, 0.2,
+                                 antialiased)
+    dirs = rows64[0] - torch.from_numpy(campos)
+    colour = eval_sh_colour(deg, rows64[4], dirs / dirs.norm(dim=1, keepdim=True))
+    ref = [torch.stack([q["u"], q["v"]], 1), torch.stack([q["l11"], q["l21"], q["l22"], q["opacity"]], 1),
+           q["z"], colour]
+    assert ((q["u"] - K[0, 2]).abs() > 1.3 * 0.5 * w).any()     # the frustum clamp is active
+    gen = torch.Generator().manual_seed(deg)
+    weights = [torch.randn(r.shape, generator=gen, dtype=torch.float64) for r in ref]
+    for o, r in zip(outs[:4], ref):
+        assert (o.double() - r).abs().max() <= 1e-6 * max(1.0, r.abs().max().item())
+    sum((o.double() * g).sum() for o, g in zip(outs[:4], weights)).backward()
+    sum((r * g).sum() for r, g in zip(ref, weights)).backward()
+    for name, a, b in zip(PARAM_NAMES, rows32, rows64):
+        err = (a.grad.double() - b.grad).abs().max().item()
+        assert err <= 1e-6 * b.grad.abs().max().item(), (name, err, b.grad.abs().max().item())
