@@ -750,6 +750,43 @@ def test_numba_is_deterministic_and_float64_stays_eager():
     assert out.stats["path"] == "eager"      # numba's kernels are float32
 
 
+def test_numba_missing_means_eager(monkeypatch):
+    """No numba (or numba failing to import): ``compiled="numba"`` renders eagerly, with one
+    warning, and gives the eager numbers."""
+    from recgs_addon.core.render import numba_kernels
+    monkeypatch.setattr(numba_kernels, "_STATE", {"error": ImportError("No module named 'numba'")})
+    monkeypatch.setattr(rasterizer, "_KERNEL_CACHE", dict(rasterizer._KERNEL_CACHE))
+    assert not rasterizer.numba_kernels_ready()
+    scene = make_scene(3, n=50)
+    with pytest.warns(UserWarning, match="numba kernels unavailable"):
+        out, _ = run(scene, compiled="numba")
+    ref, _ = run(scene, compiled=False)
+    assert out.stats["path"] == "eager" and torch.equal(out.rgb, ref.rgb)
+
+
+@needs_numba
+def test_numba_failing_at_run_time_falls_back_to_eager(monkeypatch):
+    """A numba kernel that raises mid-run: this render and every later one take the eager
+    path (with a warning), and give the eager numbers."""
+    from recgs_addon.core.render import numba_kernels
+    monkeypatch.setattr(numba_kernels, "_STATE", dict(numba_kernels._STATE))   # restored after
+    monkeypatch.setattr(rasterizer, "_KERNEL_CACHE", dict(rasterizer._KERNEL_CACHE))
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(rasterizer, "_render_numba", boom)
+    scene = make_scene(3, n=50)
+    ref, _ = run(scene, compiled=False)
+    with pytest.warns(UserWarning, match="numba kernels failed"):
+        out, _ = run(scene, compiled="numba")
+    assert out.stats["path"] == "eager" and torch.equal(out.rgb, ref.rgb)
+    assert not rasterizer.numba_kernels_ready() and "boom" in repr(numba_kernels.error())
+    with pytest.warns(UserWarning, match="numba kernels unavailable"):
+        again, _ = run(scene, compiled="numba")
+    assert again.stats["path"] == "eager"
+
+
 @needs_numba
 @pytest.mark.parametrize("deg, antialiased", [(0, False), (1, True), (2, False), (3, True)])
 def test_numba_projection_gradients_match_float64_autograd(deg, antialiased):

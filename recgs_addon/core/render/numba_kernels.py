@@ -246,3 +246,9 @@ def load(alpha_min: float, alpha_max: float, t_min: float) -> Optional[NumbaKern
 
 def error() -> Optional[BaseException]:
     return _STATE.get("error")
+
+
+def disable(exc: BaseException) -> None:
+    """Kernels that failed at run time: :func:`load` returns None from now on (eager torch)."""
+    _STATE.clear()
+    _STATE["error"] = exc

@@ -723,9 +723,15 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
                                       (means, log_scales, quats, logit_opacities)):
         if not near > 0:
             raise ValueError(f"near must be > 0, got {near}")
-        return _render_numba(kern.numba, means, log_scales, quats, logit_opacities, blocks,
-                             viewmat, K, width, height, sh_degree, background, antialiased, near,
-                             tile_size, gather)
+        try:
+            return _render_numba(kern.numba, means, log_scales, quats, logit_opacities, blocks,
+                                 viewmat, K, width, height, sh_degree, background, antialiased,
+                                 near, tile_size, gather)
+        except Exception as exc:  # noqa: BLE001 - numba failing here: eager from now on
+            from . import numba_kernels
+            numba_kernels.disable(exc)
+            warnings.warn(f"numba kernels failed ({exc!r}); using the eager rasterizer")
+            kern = get_kernels(False)
     proj = project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K,
                              width, height, near=near, antialiased=antialiased,
                              compiled=kern.compiled, gather=gather)
