@@ -23,6 +23,10 @@ frozen geometry's depth, gain restored per sample count): how far colours from m
 each point's own photos' average can go with the same geometry. ``--estimator gradients``
 does the same with log-gradient consensus (Weiss 2001): the high band integrated from the
 median of the warped photos' log-gradients, the lowest ``--k`` frequencies from their mean.
+``--estimator lightfield`` runs the rounds with the per-view light fields of
+core/caustics/lightfield.py instead of the low-pass (one-sided coherent light over a floor,
+``--lf-lambda``, ``--lf-tau``; the survey gain in linear light each round): how far the lower
+envelope of the light takes the same geometry.
 """
 from __future__ import annotations
 
@@ -37,6 +41,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recgs_addon.core.caustics import fft_filter as caustics  # noqa: E402
+from recgs_addon.core.caustics import lightfield  # noqa: E402
 from recgs_addon.core.caustics.consensus import consensus_targets, log_gradient_targets  # noqa: E402
 from recgs_addon.core.io.colmap import load_scene  # noqa: E402
 from recgs_addon.core.train.losses import psnr  # noqa: E402
@@ -49,7 +54,8 @@ ROUND_STEPS = 200
 
 def bound(scene_dir: Path, model: Path, *, targets: str = "captured", loss: str = "l2", steps: int = 1500,
           rounds: int = 5, k: int = 25, lr: float = 0.01, holdout_every: int = 8,
-          compiled: bool | None = None, log=print, estimator: str = "lowpass", stat: str = "mean") -> list[dict]:
+          compiled: bool | None = None, log=print, estimator: str = "lowpass", stat: str = "mean",
+          lf_lambda: float = 0.05, lf_tau: float = 0.02) -> list[dict]:
     """Refit the colours of ``model``'s frozen Gaussians, then run ``rounds`` RecGS recurrences
     on them. Returns one record per stage: ``stage``, ``heldout`` (mean held-out PSNR against
     ``scene_dir/clean``, dB) and, for the rounds, ``train`` (PSNR of the caustic-free training
@@ -119,13 +125,27 @@ def bound(scene_dir: Path, model: Path, *, targets: str = "captured", loss: str 
         fit(steps, {i: photo[i] - cmaps[i] for i in train_ids})
         report("log-gradients" if estimator == "gradients" else f"consensus {stat}", cmaps)
         return records
+    gain = torch.ones(3)
     for r in range(rounds):
         with torch.no_grad():
             cmaps = {}
-            for i in train_ids:
-                c = caustics.lowpass(photo[i] - draw(i), k)
-                cmaps[i] = c - c.mean(dim=(0, 1), keepdim=True)
-        fit(ROUND_STEPS, {i: photo[i] - cmaps[i] for i in train_ids})
+            if estimator == "lightfield":
+                # one-sided coherent light over a floor (core/caustics/lightfield.py), fitted
+                # under the floor light; the survey gain brings the model back at the end
+                q = torch.stack([lightfield.grey_log_ratio(photo[i], lightfield.scale_linear(draw(i), 1 / gain))
+                                 for i in train_ids])
+                fields = lightfield.light_fields(q, k, lf_lambda, lf_tau)
+                floor = {i: lightfield.remove_light(photo[i], f) for i, f in zip(train_ids, fields)}
+                gain = lightfield.linear_gain((photo[i], floor[i]) for i in train_ids)
+                for i in train_ids:
+                    cmaps[i] = photo[i] - lightfield.scale_linear(floor[i], gain)
+                target = {i: lightfield.scale_linear(floor[i], gain) for i in train_ids}
+            else:
+                for i in train_ids:
+                    c = caustics.lowpass(photo[i] - draw(i), k)
+                    cmaps[i] = c - c.mean(dim=(0, 1), keepdim=True)
+                target = {i: photo[i] - cmaps[i] for i in train_ids}
+        fit(ROUND_STEPS, target)
         report(f"round {r + 1}", cmaps)
     return records
 
@@ -141,13 +161,16 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=25, help="low-pass block size")
     ap.add_argument("--lr", type=float, default=0.01)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--estimator", choices=["lowpass", "consensus", "gradients"], default="lowpass")
+    ap.add_argument("--estimator", choices=["lowpass", "consensus", "gradients", "lightfield"], default="lowpass")
+    ap.add_argument("--lf-lambda", type=float, default=0.05, help="lightfield: TV weight")
+    ap.add_argument("--lf-tau", type=float, default=0.02, help="lightfield: dead band (log light)")
     ap.add_argument("--stat", choices=["mean", "median", "min", "quantile"], default="mean",
                     help="consensus: the per-pixel statistic")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     bound(args.scene, args.model, targets=args.targets, loss=args.loss, steps=args.steps, rounds=args.rounds,
-          k=args.k, lr=args.lr, log=lambda m: print(m, flush=True), estimator=args.estimator, stat=args.stat)
+          k=args.k, lr=args.lr, log=lambda m: print(m, flush=True), estimator=args.estimator, stat=args.stat,
+          lf_lambda=args.lf_lambda, lf_tau=args.lf_tau)
 
 
 if __name__ == "__main__":

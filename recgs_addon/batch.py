@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import importlib
 import os
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -156,25 +155,38 @@ def _run(bpy, training, properties, args, extra: list[str], scene_dir: Path, out
     if status == "FAILED":
         return fail(f"training failed: {training.last_failure or s.message}")
     obj = bpy.data.objects[obj.name]
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        copied = _save_outputs(bpy, obj, out)
+    except RuntimeError as exc:   # the export operator's error report
+        return fail(str(exc).removeprefix("Error: ").strip())
+    except (_pkg("core.errors").RecGSError, OSError) as exc:
+        return fail(str(exc))
+    log(f"{status.lower()}: {s.message}; wrote {out / 'scene.blend'}, {out / 'point_cloud.ply'}"
+        + (f", {', '.join(copied)}" if copied else "") + f" in {time.perf_counter() - t0:.1f} s")
+    return 0 if status == "DONE" else 1
+
+
+def _save_outputs(bpy, obj, out: Path) -> list[str]:
+    """scene.blend, point_cloud.ply and the job's report and caustic-free images, each file
+    written whole or not at all (core/io/atomic.py). Returns what was copied from the job."""
+    atomic = _pkg("core.io.atomic")
+    atomic.make_folder(out)
     bpy.context.scene.camera = bpy.context.scene.camera or next(
         (o for o in bpy.data.objects if o.type == "CAMERA"), None)
-    bpy.ops.wm.save_as_mainfile(filepath=str(out / "scene.blend"), check_existing=False)
+    _pkg("blender.blendfile").save_blend(out / "scene.blend")
     bpy.context.view_layer.objects.active = obj
     bpy.ops.recgs.export_ply(filepath=str(out / "point_cloud.ply"))
     job_out = out / "train"
     copied = []
     for name in ("decaustic", "report"):  # report/ holds report.md's figures
         if (job_out / name).is_dir():
-            shutil.copytree(job_out / name, out / name, dirs_exist_ok=True)
+            atomic.copy_tree(job_out / name, out / name)
             copied.append(f"{name}/")
     for name in ("report.md", "metrics.json"):
         if (job_out / name).is_file():
-            shutil.copy2(job_out / name, out / name)
+            atomic.copy_file(job_out / name, out / name, "report")
             copied.append(name)
-    log(f"{status.lower()}: {s.message}; wrote {out / 'scene.blend'}, {out / 'point_cloud.ply'}"
-        + (f", {', '.join(copied)}" if copied else "") + f" in {time.perf_counter() - t0:.1f} s")
-    return 0 if status == "DONE" else 1
+    return copied
 
 
 if __name__ == "__main__":

@@ -91,10 +91,12 @@ def cmd_import(args) -> int:
               "or running inside Blender", file=sys.stderr)
         return 2
     from . import blender as addon
-    from .blender.gaussian_object import read_mesh
-    from .core.io.ply import read_gaussian_ply
+    from .core.errors import RecGSError
 
     out = args.out
+    if out.exists() and not out.is_dir():
+        print(f"error: {out}: is a file, not a folder (choose another output folder)", file=sys.stderr)
+        return 1
     t_start = time.perf_counter()
     bpy.ops.wm.read_factory_settings(use_empty=True)
     addon.register()
@@ -109,25 +111,45 @@ def cmd_import(args) -> int:
         if res != {"FINISHED"}:
             print(f"error: import failed: {res}", file=sys.stderr)
             return 1
-        out.mkdir(parents=True, exist_ok=True)
-        obj = bpy.context.active_object
-        cam_objs = sorted((o for o in bpy.data.objects if o.type == "CAMERA"), key=lambda o: o.name)
-        proj = _blender_projection_error(bpy, cam_objs, read_mesh(obj.data).means)
-        undistorted = "recgs_undistorted_dir" in obj
-        t0 = time.perf_counter()
-        ply_path = out / "point_cloud.ply"
-        bpy.ops.recgs.export_ply(filepath=str(ply_path))
-        t_export = time.perf_counter() - t0
-        bpy.context.scene.camera = cam_objs[0]
-        blend_path = out / "scene.blend"
-        t0 = time.perf_counter()
-        bpy.ops.wm.save_as_mainfile(filepath=str(blend_path.resolve()), check_existing=False)
-        t_save = time.perf_counter() - t0
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")
-            g = read_gaussian_ply(ply_path)
+        try:
+            lines = _write_import_outputs(bpy, args, out, t_start, t_import)
+        except RuntimeError as exc:   # an operator's error report (the export's full disk, ...)
+            print(f"error: {str(exc).removeprefix('Error: ').strip()}", file=sys.stderr)
+            return 1
+        except RecGSError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
     finally:
         addon.unregister()
+    print("\n".join(lines))
+    return 0
+
+
+def _write_import_outputs(bpy, args, out: Path, t_start: float, t_import: float) -> list[str]:
+    """point_cloud.ply, scene.blend and the report of an import, each written whole or not at
+    all (core/io/atomic.py); returns the report's lines."""
+    from .blender.blendfile import save_blend
+    from .blender.gaussian_object import read_mesh
+    from .core.io.atomic import atomic_path, make_folder
+    from .core.io.ply import read_gaussian_ply
+
+    make_folder(out)
+    obj = bpy.context.active_object
+    cam_objs = sorted((o for o in bpy.data.objects if o.type == "CAMERA"), key=lambda o: o.name)
+    proj = _blender_projection_error(bpy, cam_objs, read_mesh(obj.data).means)
+    undistorted = "recgs_undistorted_dir" in obj
+    t0 = time.perf_counter()
+    ply_path = out / "point_cloud.ply"
+    bpy.ops.recgs.export_ply(filepath=str(ply_path))
+    t_export = time.perf_counter() - t0
+    bpy.context.scene.camera = cam_objs[0]
+    blend_path = out / "scene.blend"
+    t0 = time.perf_counter()
+    save_blend(blend_path)
+    t_save = time.perf_counter() - t0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        g = read_gaussian_ply(ply_path)
     report = {
         "scene_dir": str(args.scene_dir), "images": len(cam_objs), "gaussians": len(g),
         "sh_degree": g.sh_degree, "undistorted": undistorted,
@@ -137,7 +159,8 @@ def cmd_import(args) -> int:
         "camera_projection_error_px": proj,
         "outputs": {"blend": str(blend_path), "ply": str(ply_path)},
     }
-    (out / "report.json").write_text(json.dumps(report, indent=2))
+    with atomic_path(out / "report.json", "report") as tmp:
+        tmp.write_text(json.dumps(report, indent=2))
     lines = [
         f"# RecGS import report: {args.scene_dir}", "",
         f"- {len(cam_objs)} cameras, {len(g)} initial Gaussians (SH degree {g.sh_degree})",
@@ -148,9 +171,9 @@ def cmd_import(args) -> int:
         f"- wrote {blend_path} and {ply_path}", "",
         "Training, caustic removal and caustic-free images are not part of this command yet.",
     ]
-    (out / "report.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    return 0
+    with atomic_path(out / "report.md", "report") as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
+    return lines
 
 
 def cmd_info(args) -> int:

@@ -105,6 +105,9 @@ def add_train_arguments(p) -> None:
     g.add_argument("--lf-tau", type=float, default=None, help="lightfield: dead band in log light (default 0.02)")
     g.add_argument("--consensus-stat", choices=["mean", "median", "min", "quantile"], default=None,
                    help="consensus: the per-pixel statistic over the views that see it (default mean)")
+    g.add_argument("--fit-loss", choices=["l1", "l2"], default=None,
+                   help="recgs: data term of the recurrences: l1 (the paper; fits the views' median) or l2 "
+                        "(their mean; no SSIM term)")
     g.add_argument("--robust-k", type=float, default=None,
                    help="recgs: leave out of the loss pixels brighter than the render by more than k robust "
                         "sigmas (1.5 in the trials; default 0 = the paper's plain loss, see docs/caustics.md)")
@@ -174,6 +177,10 @@ def run_train(args) -> int:
     out: Path = args.out
     ckpt_path = out / "checkpoint.pt"
     try:
+        if not 0 <= args.checkpoint_every < math.inf:   # NaN fails this too
+            raise RecGSError(f"--checkpoint-every must be a number of seconds >= 0, got {args.checkpoint_every}")
+        if out.exists() and not out.is_dir():
+            raise RecGSError(f"{out}: is a file, not a folder (choose another output folder)")
         _check_device(args.device)
         state = None
         if args.resume:
@@ -195,7 +202,7 @@ def run_train(args) -> int:
                            recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,
                            recurrence_tol=args.recurrence_tol, robust_k=args.robust_k,
                            estimator=args.estimator, consensus_stat=args.consensus_stat,
-                           lf_lambda=args.lf_lambda, lf_tau=args.lf_tau,
+                           lf_lambda=args.lf_lambda, lf_tau=args.lf_tau, fit_loss=args.fit_loss,
                            gain_restore=None if args.gain_restore is None else args.gain_restore == "on")
             ccfg = CausticConfig(**{k: v for k, v in caustic.items() if v is not None})
         init = read_gaussian_ply(args.init_ply) if args.init_ply and not args.resume else None
@@ -204,6 +211,9 @@ def run_train(args) -> int:
         trainer = method.trainer
         if state is not None:
             method.load_state_dict(state)
+        # every image the run uses is read now, so a file that does not decode stops the job
+        # before it writes anything (training would read them all anyway; they stay cached)
+        trainer.data.load_all(trainer.level())
     except RecGSError as exc:
         _emit("error", message=str(exc))
         print(f"error: {exc}", file=sys.stderr)
@@ -226,9 +236,6 @@ def run_train(args) -> int:
 
 def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator) -> int:
     from .core.io.ply import write_gaussian_ply
-    from .core.outputs.diagnostics import support_summary, view_support
-    from .core.outputs.exports import write_outputs
-    from .core.outputs.report import write_run_report
     from .core.train.checkpoint import save_checkpoint
 
     stop = {"signal": None}
@@ -279,6 +286,20 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
         trainer.compiler.close()
         for s, h in old.items():
             signal.signal(s, h)
+    try:
+        return _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint)
+    except RecGSError as exc:   # a full disk or an unwritable folder at the end: one line, the last checkpoint kept
+        _emit("error", message=f"{exc} (training ended at iteration {trainer.step}; the last checkpoint is kept)")
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+
+def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint) -> int:
+    """The end of a run: the last checkpoint, the output images, metrics and report."""
+    from .core.outputs.diagnostics import support_summary, view_support
+    from .core.outputs.exports import write_outputs
+    from .core.outputs.report import write_run_report
+
     checkpoint(trainer)
     outputs = write_outputs(method, out)
     if reason == "stopped":
@@ -321,6 +342,7 @@ def add_render_arguments(p) -> None:
 def run_render(args) -> int:
     import torch
 
+    from .core.io.atomic import make_folder
     from .core.io.colmap import load_scene
     from .core.io.images import write_image
     from .core.train.losses import psnr
@@ -329,6 +351,10 @@ def run_render(args) -> int:
     from .core.train.data import resolve_image_dir
 
     try:
+        if args.downscale < 1:
+            raise RecGSError(f"--downscale must be an integer >= 1, got {args.downscale}")
+        if args.out.exists() and not args.out.is_dir():
+            raise RecGSError(f"{args.out}: is a file, not a folder (choose another output folder)")
         g = read_gaussian_ply(args.model)
         image_dir = None
         if args.images:
@@ -341,28 +367,42 @@ def run_render(args) -> int:
             if unknown:
                 raise RecGSError(f"{scene.model_dir}: no camera for image(s) {', '.join(unknown)}")
             cams = [c for c in cams if c.name in wanted]
+        make_folder(args.out)
     except RecGSError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     t = {k: torch.tensor(v) for k, v in (("means", g.means), ("log_scales", g.log_scales), ("quats", g.quats),
                                          ("logit_opacities", g.logit_opacities), ("sh", g.sh))}
     results = []
-    for cam in cams:
-        img = scene.load_image(cam, downscale=args.downscale)
-        c = cam.resized(img.shape[1], img.shape[0])
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            out = render(t["means"], t["log_scales"], t["quats"], t["logit_opacities"], t["sh"],
-                         torch.tensor(cam.viewmat, dtype=torch.float32), torch.tensor(c.K, dtype=torch.float32),
-                         img.shape[1], img.shape[0], compiled=False if args.eager else None)
-        dt = time.perf_counter() - t0
-        rgb = out.rgb.numpy()
-        stem = Path(cam.name).with_suffix("")
-        write_image(args.out / f"{stem}.png", rgb)
-        write_image(args.out / f"{stem}.exr", rgb)
-        value = psnr(torch.from_numpy(np.clip(rgb, 0, 1)), torch.from_numpy(img))
-        results.append({"name": cam.name, "psnr": _finite(value), "seconds": round(dt, 3)})
-        _emit("rendered", **results[-1])
+    try:
+        for cam in cams:
+            results.append(_render_one(args, scene, cam, t, render, psnr, write_image))
+    except RecGSError as exc:   # an image that does not decode, a full disk
+        _emit("error", message=str(exc))
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     mean = float(np.mean([r["psnr"] for r in results if r["psnr"] is not None])) if results else None
     _emit("done", views=len(results), mean_psnr=mean)
     return 0
+
+
+def _render_one(args, scene, cam, t, render, psnr, write_image) -> dict:
+    """Render one camera, write its PNG and EXR, return its PSNR and time."""
+    import torch
+
+    img = scene.load_image(cam, downscale=args.downscale)
+    c = cam.resized(img.shape[1], img.shape[0])
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        out = render(t["means"], t["log_scales"], t["quats"], t["logit_opacities"], t["sh"],
+                     torch.tensor(cam.viewmat, dtype=torch.float32), torch.tensor(c.K, dtype=torch.float32),
+                     img.shape[1], img.shape[0], compiled=False if args.eager else None)
+    dt = time.perf_counter() - t0
+    rgb = out.rgb.numpy()
+    stem = Path(cam.name).with_suffix("")
+    write_image(args.out / f"{stem}.png", rgb)
+    write_image(args.out / f"{stem}.exr", rgb)
+    value = psnr(torch.from_numpy(np.clip(rgb, 0, 1)), torch.from_numpy(img))
+    result = {"name": cam.name, "psnr": _finite(value), "seconds": round(dt, 3)}
+    _emit("rendered", **result)
+    return result

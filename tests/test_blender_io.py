@@ -203,6 +203,9 @@ BAD_INPUTS = {  # case -> (text model?, scene kwargs, how to break it, expected 
                              "img_002.png: image is 50x40 but its COLMAP camera 1 is 64x48"),
     "unsupported camera model": (True, {}, _unsupported_model, "uses the EQUIRECTANGULAR model"),
     "empty point cloud": (False, {"n_points": 0}, lambda r: None, "the model has no 3D points"),
+    "image names a missing camera": (True, {}, lambda r: (r / "sparse/0/images.txt").write_text(
+        (r / "sparse/0/images.txt").read_text().replace(" 1 img_000.png", " 7 img_000.png")),
+        r"images.txt: line 5: image 1 \('img_000.png'\) names camera 7, which cameras.txt does not have"),
 }
 
 
@@ -240,6 +243,18 @@ def test_bad_ply_reports_and_leaves_scene(tmp_path, bpy_session):
     assert _scene_state(bpy) == before
 
 
+def test_ply_with_only_nan_rows_reports_and_leaves_scene(tmp_path, bpy_session):
+    from recgs_addon.core.io.ply import write_gaussian_ply
+
+    g = random_gaussians(n=10, degree=0)
+    g.logit_opacities[:] = np.nan
+    write_gaussian_ply(tmp_path / "void.ply", g)
+    before = _scene_state(bpy)
+    with pytest.raises(RuntimeError, match="void.ply: all 10 Gaussians have NaN or Inf values"):
+        bpy.ops.recgs.import_ply(filepath=str(tmp_path / "void.ply"))
+    assert _scene_state(bpy) == before
+
+
 def test_ply_with_nan_rows_warns_and_imports_rest(tmp_path, bpy_session):
     from recgs_addon.core.io.ply import write_gaussian_ply
 
@@ -270,3 +285,75 @@ def test_os_errors_are_reported_not_raised(tmp_path, bpy_session, monkeypatch):
     with pytest.raises(RuntimeError, match="Permission denied"):
         bpy.ops.recgs.import_ply(filepath=str(tmp_path / "g.ply"))
     assert _scene_state(bpy) == before
+
+
+# --- the .blend, written whole or not at all ----------------------------------------------------
+
+def _blend_objects(path):
+    """Object names in a saved .blend (read without opening it)."""
+    with bpy.data.libraries.load(str(path)) as (data_from, _):
+        return sorted(data_from.objects)
+
+
+def test_blend_saved_through_a_temporary_and_the_previous_kept_on_failure(tmp_path, bpy_session, monkeypatch):
+    """The .blend the import and batch commands write appears whole or not at all, like every
+    other output: a save that fails (a full disk when the file is renamed into place, or
+    Blender's own write failing half way) leaves the previous file as it was, no temporary
+    and no Blender '@' file, and says so naming the file. No .blend1 backup appears."""
+    import errno
+    import os
+
+    from recgs_addon.blender import blendfile
+    from recgs_addon.core.io.atomic import OutputError
+
+    path = tmp_path / "scene.blend"
+    bpy.ops.mesh.primitive_cube_add()
+    blendfile.save_blend(path)
+    bpy.ops.mesh.primitive_uv_sphere_add()
+    blendfile.save_blend(path)                                # over the first one
+    assert _blend_objects(path) == ["Cube", "Sphere"] and sorted(p.name for p in tmp_path.iterdir()) == ["scene.blend"]
+    assert bpy.data.filepath == ""                            # a copy: the session keeps its own name
+    before = path.read_bytes()
+    bpy.ops.mesh.primitive_monkey_add()
+
+    def full_disk(src, dst):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    monkeypatch.setattr(os, "replace", full_disk)
+    with pytest.raises(OutputError, match=r"scene.blend: could not write the .blend file: the disk is full "
+                                          r"\(the previous one is kept\)"):
+        blendfile.save_blend(path)
+    monkeypatch.undo()
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["scene.blend"]
+
+    class HalfWritten:      # Blender writes NAME@, then fails
+        class ops:
+            class wm:
+                @staticmethod
+                def save_as_mainfile(filepath, **kw):
+                    with open(f"{filepath}@", "wb") as f:
+                        f.write(b"BLENDER-v500 cut short")
+                    raise RuntimeError(f"Error: Cannot write file {filepath}@: No space left on device\n")
+    monkeypatch.setattr(blendfile, "bpy", HalfWritten)
+    with pytest.raises(OutputError, match=r"scene.blend: could not write the .blend file: Cannot write file "
+                                          r".*scene.blend: No space left on device \(the previous one is kept\)"):
+        blendfile.save_blend(path)
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["scene.blend"]
+
+
+def test_export_operator_on_a_full_disk_reports_and_keeps_the_previous_export(tmp_path, bpy_session, monkeypatch):
+    """Export 3DGS PLY when the disk fills half way: the operator reports the full disk in the
+    UI (RuntimeError headless), the previous export still reads, no temporary is left."""
+    import builtins
+
+    from recgs_addon.core.io.ply import read_gaussian_ply, write_gaussian_ply
+    from test_reliability import DiskFullAfter, leftovers
+
+    write_gaussian_ply(tmp_path / "in.ply", random_gaussians(n=2000, degree=1))
+    assert bpy.ops.recgs.import_ply(filepath=str(tmp_path / "in.ply")) == {"FINISHED"}
+    out = tmp_path / "exports" / "model.ply"
+    write_gaussian_ply(out, random_gaussians(n=7, degree=0))
+    monkeypatch.setattr(builtins, "open", DiskFullAfter(out.parent, 5000))
+    with pytest.raises(RuntimeError, match=r"model.ply: could not write the PLY: the disk is full \(the previous one is kept\)"):
+        bpy.ops.recgs.export_ply(filepath=str(out))
+    monkeypatch.undo()
+    assert len(read_gaussian_ply(out)) == 7 and leftovers(out.parent) == []

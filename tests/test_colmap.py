@@ -173,7 +173,7 @@ def test_paths_with_spaces_and_non_ascii(tmp_path):
 def test_param_count_table_matches_pycolmap():
     import pycolmap
 
-    from recgs_addon.core.io.colmap import _MODEL_NUM_PARAMS
+    from recgs_addon.core.io.colmap_checks import _MODEL_NUM_PARAMS
 
     for name, mid in pycolmap.CameraModelId.__members__.items():
         if name != "INVALID":
@@ -183,9 +183,9 @@ def test_param_count_table_matches_pycolmap():
 
 def test_opencv_binary_cameras_bin_passes_structural_check(tmp_path):
     write_colmap_scene(tmp_path / "s", model="OPENCV")
-    from recgs_addon.core.io.colmap import _check_cameras_bin
+    from recgs_addon.core.io.colmap_checks import ModelIndex, _cameras_bin
 
-    _check_cameras_bin(tmp_path / "s/sparse/0/cameras.bin")
+    _cameras_bin(tmp_path / "s/sparse/0/cameras.bin", ModelIndex(".bin"))
 
 
 def test_all_images_missing_says_so(colmap_scene):
@@ -250,7 +250,11 @@ def test_pose_with_nan_is_refused(tmp_path):
     root = _binary_scene(tmp_path, edit)
     with pytest.raises(SceneError, match="img_000.png.*NaN") as e:
         load_scene(root)
-    assert "images.bin" in str(e.value)
+    assert "frames.bin: frame 1" in str(e.value)   # where pycolmap takes the pose from
+    for name in ("frames.bin", "rigs.bin"):         # a model from before COLMAP 3.12: images.bin holds it
+        (root / "sparse" / "0" / name).unlink()
+    with pytest.raises(SceneError, match=r"images.bin: image 1 \('img_000.png'\) has a pose with NaN"):
+        load_scene(root)
 
 
 def test_points_with_nan_are_dropped_and_all_nan_refused(tmp_path):
@@ -275,3 +279,145 @@ def test_two_images_with_one_name_are_refused(tmp_path):
     with pytest.raises(SceneError, match="same name 'img_000.png'") as e:
         load_scene(root)
     assert "images.txt" in str(e.value)
+
+
+# --- what the outside trial found: each a clear error naming the file and record at fault ---------
+# (pycolmap reads some of these silently, and refuses the others with its internal check
+# messages, naming no file: "Check failed: frame->HasDataId(DataId())", "unordered_map::at")
+
+import struct  # noqa: E402
+
+
+def _patch(path, offset, fmt, *values):
+    data = bytearray(path.read_bytes())
+    struct.pack_into(fmt, data, offset, *values)
+    path.write_bytes(bytes(data))
+
+
+def _first_2d_point_id_offset(images_bin):
+    data = images_bin.read_bytes()
+    return data.index(b"img_000.png\0") + len(b"img_000.png\0") + 8 + 16   # n2d, then x y of the first
+
+
+BINARY_BREAKS = {  # case -> (how to break sparse/0, the error)
+    "image names a missing camera": (lambda m: _patch(m / "images.bin", 8 + 60, "<I", 7),
+                                     r"images.bin: image 1 \('img_000.png'\) names camera 7, which cameras.bin does not have"),
+    "legacy: image names a missing camera": (
+        lambda m: ((m / "rigs.bin").unlink(), (m / "frames.bin").unlink(), _patch(m / "images.bin", 8 + 60, "<I", 7)),
+        r"images.bin: image 1 \('img_000.png'\) names camera 7, which cameras.bin does not have"),
+    "frame names a missing rig": (lambda m: _patch(m / "frames.bin", 8 + 4, "<I", 9),
+                                  "frames.bin: frame 1 names rig 9, which rigs.bin does not have"),
+    "frame names a missing image": (lambda m: _patch(m / "frames.bin", 8 + 68 + 8, "<Q", 99),
+                                    "frames.bin: frame 1 names image 99, which images.bin does not have"),
+    "rig names a missing camera": (lambda m: _patch(m / "rigs.bin", 8 + 12, "<I", 5),
+                                   "rigs.bin: rig 1 names camera 5, which cameras.bin does not have"),
+    "zero rotation in frames.bin": (lambda m: _patch(m / "frames.bin", 8 + 8, "<4d", 0, 0, 0, 0),
+                                    r"frames.bin: frame 1 \('img_000.png'\) has a rotation quaternion of length 0"),
+    "legacy: zero rotation in images.bin": (
+        lambda m: ((m / "rigs.bin").unlink(), (m / "frames.bin").unlink(), _patch(m / "images.bin", 8 + 4, "<4d", 0, 0, 0, 0)),
+        r"images.bin: image 1 \('img_000.png'\) has a rotation quaternion of length 0"),
+    "two frames name one image": (lambda m: _patch(m / "frames.bin", 8 + 68 + 8, "<Q", 2),
+                                  r"frames.bin: frame 2 names image 2 \('img_001.png'\), which frame 1 names too"),
+    "track names a missing image": (lambda m: _patch(m / "points3D.bin", 8 + 51, "<I", 999),
+                                    "points3D.bin: 3D point 1's track names image 999, which images.bin does not have"),
+    "observation names a missing point": (
+        lambda m: _patch(m / "images.bin", _first_2d_point_id_offset(m / "images.bin"), "<q", 10 ** 9),
+        r"images.bin: image 1 \('img_000.png'\) observes 3D point 1000000000, which points3D.bin does not have"),
+    "track and observation disagree": (
+        lambda m: _patch(m / "images.bin", _first_2d_point_id_offset(m / "images.bin"), "<q", 2),
+        r"points3D.bin: 3D point 1's track says image 1 \('img_000.png'\) saw it as 2D point 0, but images.bin "
+        "gives that 2D point to 3D point 2"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BINARY_BREAKS))
+def test_binary_model_references_and_rotations(tmp_path, case):
+    root = tmp_path / "survey"
+    write_colmap_scene(root, n_images=3, n_points=30)
+    breaker, message = BINARY_BREAKS[case]
+    breaker(root / "sparse" / "0")
+    with pytest.raises(SceneError, match=message) as e:
+        load_scene(root)
+    assert str(root / "sparse" / "0") in str(e.value) and "Check failed" not in str(e.value)
+
+
+def _edit_line(path, first_token, edit):
+    """Replace the data line of ``path`` whose first token is ``first_token`` by ``edit(tokens)``."""
+    lines = path.read_text().splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln and not ln.startswith("#") and ln.split()[0] == first_token)
+    lines[i] = " ".join(edit(lines[i].split()))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _set(i, value):
+    def edit(tok):
+        tok[i] = value
+        return tok
+    return edit
+
+
+TEXT_BREAKS = {
+    "image names a missing camera": (lambda m: _edit_line(m / "images.txt", "1", _set(8, "7")),
+                                     r"images.txt: line 5: image 1 \('img_000.png'\) names camera 7, which cameras.txt"),
+    "unknown camera model": (lambda m: _edit_line(m / "cameras.txt", "1", _set(1, "FANCY_LENS")),
+                             "cameras.txt: line 4: camera 1 uses the unknown camera model 'FANCY_LENS'"),
+    "NaN focal length": (lambda m: _edit_line(m / "cameras.txt", "1", _set(4, "nan")),
+                         "cameras.txt: line 4: camera 1 has parameters that are NaN or infinite"),
+    "wrong parameter count": (lambda m: _edit_line(m / "cameras.txt", "1", lambda t: t + ["0.1"]),
+                              "cameras.txt: line 4: camera 1 has 5 parameters; the PINHOLE model has 4"),
+    "NaN pose in images.txt": (lambda m: _edit_line(m / "images.txt", "1", _set(5, "nan")),
+                               r"images.txt: line 5: image 1 \('img_000.png'\) has a pose with NaN or infinite"),
+    "NaN pose in frames.txt": (lambda m: _edit_line(m / "frames.txt", "1", _set(7, "inf")),
+                               r"frames.txt: line 4: frame 1 \('img_000.png'\) has a pose with NaN or infinite"),
+    "zero rotation in frames.txt": (lambda m: _edit_line(m / "frames.txt", "1", lambda t: t[:2] + ["0"] * 4 + t[6:]),
+                                    r"frames.txt: line 4: frame 1 \('img_000.png'\) has a rotation quaternion of length 0"),
+    "NaN 3D point": (lambda m: _edit_line(m / "points3D.txt", "1", _set(2, "nan")),
+                     "points3D.txt: line 4: 3D point 1 has NaN or infinite coordinates"),
+    "points3D.txt cut short": (
+        lambda m: (m / "points3D.txt").write_text("\n".join((m / "points3D.txt").read_text().splitlines()[:14]) + "\n"),
+        "points3D.txt: its points' tracks hold 33 observations but images.txt lists 90: points are missing"),
+    "points3D.txt cut inside a line": (
+        lambda m: (m / "points3D.txt").write_text((m / "points3D.txt").read_text()[:1200]),
+        "points3D.txt: line 15 is not a 3D point"),
+    "images.txt without its last points line": (
+        lambda m: (m / "images.txt").write_text("\n".join((m / "images.txt").read_text().splitlines()[:-1]) + "\n"),
+        r"images.txt: line 9: image 3 \('img_002.png'\) has no line of 2D points after it"),
+    "frame names a missing image": (lambda m: _edit_line(m / "frames.txt", "1", _set(12, "99")),
+                                    "frames.txt: line 4: frame 1 names image 99, which images.txt does not have"),
+    "a frame's line lost": (lambda m: _edit_line(m / "frames.txt", "1", lambda t: ["#"] + t),
+                            r"images.txt: line 5: image 1 \('img_000.png'\) is in no frame of frames.txt"),
+    "a rig without its camera": (lambda m: _edit_line(m / "rigs.txt", "1", lambda t: ["1", "0"]),
+                                 "frames.txt: line 4: frame 1 names camera 1, which its rig 1 in rigs.txt does not have"),
+    "an unknown sensor type": (lambda m: _edit_line(m / "rigs.txt", "1", _set(2, "LIDAR")),
+                               "rigs.txt: line 4 is not a rig .*sensor 1 is not SENSOR_TYPE"),
+    "a frame's data id not a number": (lambda m: _edit_line(m / "frames.txt", "1", _set(12, "x")),
+                                       "frames.txt: line 4 is not a frame .*data id 1 is not SENSOR_TYPE"),
+    "a colour that is not a number": (lambda m: _edit_line(m / "points3D.txt", "1", _set(5, "x")),
+                                      "points3D.txt: line 4 is not a 3D point"),
+    "a NaN 2D point": (lambda m: (m / "images.txt").write_text(
+        (m / "images.txt").read_text().replace("\n3", "\nnan", 1)),
+                       "images.txt: line 6 is not a line of 2D points .* for image 1"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(TEXT_BREAKS))
+def test_text_model_values_and_references(tmp_path, case):
+    root = tmp_path / "survey"
+    write_colmap_scene(root, n_images=3, n_points=30, binary=False)
+    breaker, message = TEXT_BREAKS[case]
+    breaker(root / "sparse" / "0")
+    with pytest.raises(SceneError, match=message) as e:
+        load_scene(root)
+    assert "Check failed" not in str(e.value)
+
+
+def test_a_file_or_a_folder_where_the_other_belongs(tmp_path, colmap_scene):
+    root, _ = colmap_scene
+    (tmp_path / "survey.txt").write_text("not a folder")
+    with pytest.raises(SceneError, match="survey.txt: is a file, not a folder"):
+        load_scene(tmp_path / "survey.txt")
+    image = root / "images" / "img_001.png"
+    image.unlink()
+    image.mkdir()
+    with pytest.raises(SceneError, match="img_001.png: is a folder, not an image file"):
+        load_scene(root)

@@ -189,12 +189,18 @@ def _copy_scene(src: Path, dst: Path) -> Path:
 
 
 def load(root: Path):
+    """Load a damaged survey: a scene, or an error that starts with the file at fault (one of
+    the model's files or an image, never just the folder: pycolmap's own check messages,
+    which name no file, used to pass a looser test)."""
     from recgs_addon.core.io.colmap import load_scene
     SEEN["colmap"] = SEEN.get("colmap", 0) + 1
     try:
         return load_scene(root, cache_dir=root / "cache")
     except RecGSError as exc:
-        assert str(root) in str(exc), f"the error does not name a file of the survey: {exc}"
+        blamed = Path(str(exc).split(": ")[0])
+        model = root / "sparse" / "0"
+        assert (blamed.parent == model and blamed.stem in ("cameras", "images", "points3D", "rigs", "frames")
+                or blamed.parent == root / "images"), f"the error does not start with a file of the survey: {exc}"
         return None
 
 

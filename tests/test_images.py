@@ -66,3 +66,17 @@ def test_non_ascii_path_with_spaces(tmp_path):
     p = tmp_path / "fonds marins é" / "vue 1 ß.png"
     write_image(p, _smooth())
     assert read_image(p).shape == (48, 64, 3)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_float_image_with_nan_or_inf_pixels_is_refused(tmp_path, bad):
+    """Regression (outside trial): an EXR with NaN/Inf pixels was read as it was; training on
+    it skipped every step that saw it (NaN loss) and said nothing. Now it names the file."""
+    a = _smooth()
+    a[5, 7, 1] = bad
+    a[9:11, 2] = bad
+    write_image(tmp_path / "hdr.exr", a)
+    with pytest.raises(ImageError, match=r"hdr.exr: 3 pixels are NaN or infinite \(the first at x=7, y=5\)"):
+        read_image(tmp_path / "hdr.exr")
+    with pytest.raises(ImageError, match=r"hdr.exr: 3 pixels are NaN or infinite \(the first at x=3, y=2\)"):
+        read_image(tmp_path / "hdr.exr", 2)

@@ -90,3 +90,24 @@ def test_pixels_with_zero_weight_do_not_count():
     assert float(training_loss(a, b2, 0.0, w)) == pytest.approx(float(loss))
     # the weighted mean: half the weight everywhere changes nothing
     assert float(training_loss(a, b, 0.2, 0.5 * w)) == pytest.approx(float(training_loss(a, b, 0.2, w)), rel=1e-6)
+
+
+def test_l2_loss_is_the_mean_squared_error_and_fits_the_mean():
+    """An L2 fit of one value to several views ends at their mean, an L1 fit at their median."""
+    from recgs_addon.core.train.losses import training_loss
+
+    a, b = torch.rand(6, 7, 3), torch.rand(6, 7, 3)
+    assert float(training_loss(a, b, 0.0, kind="l2")) == pytest.approx(float(((a - b) ** 2).mean()), rel=1e-6)
+    w = torch.ones(6, 7)
+    assert float(training_loss(a, b, 0.0, w, kind="l2")) == pytest.approx(float(((a - b) ** 2).mean()), rel=1e-6)
+    views = [torch.full((4, 4, 3), v) for v in (0.2, 0.3, 0.9)]
+    for kind, want in (("l2", 1.4 / 3), ("l1", 0.3)):
+        x = torch.full((4, 4, 3), 0.5, requires_grad=True)
+        opt = torch.optim.Adam([x], lr=0.01)
+        for step in range(1500):
+            opt.zero_grad()
+            sum(training_loss(x, v, 0.0, kind=kind) for v in views).backward()
+            opt.step()
+        assert float(x.mean()) == pytest.approx(want, abs=0.01), kind
+    with pytest.raises(ValueError):
+        training_loss(a, b, 0.0, kind="l3")

@@ -185,3 +185,19 @@ def test_count_short_of_the_body_is_refused(tmp_path):
     with pytest.raises(PlyError, match=r"bytes follow the last element.*count \(4\)") as e:
         read_gaussian_ply(p)
     assert "short.ply" in str(e.value)
+
+
+def test_all_rows_nan_is_an_error_not_an_empty_model(tmp_path):
+    """Regression (outside trial): a PLY whose every row had NaN read as 0 Gaussians with a
+    warning, and `info` called it fine; now it is an error naming the file."""
+    g = random_gaussians(n=6, degree=0)
+    g.means[:, 1] = np.nan
+    write_gaussian_ply(tmp_path / "void.ply", g)
+    with pytest.raises(PlyError, match="void.ply: all 6 Gaussians have NaN or Inf values"):
+        read_gaussian_ply(tmp_path / "void.ply")
+
+
+def test_a_folder_is_not_called_missing(tmp_path):
+    (tmp_path / "model.ply").mkdir()
+    with pytest.raises(PlyError, match="model.ply: is a folder, not a PLY file"):
+        read_gaussian_ply(tmp_path / "model.ply")

@@ -330,6 +330,8 @@ def test_batch_trains_and_saves_a_blend(tiny_scene, tmp_path):
     assert "[done] it 20" in r.stderr  # the job's progress lines are forwarded
     for name in ("scene.blend", "point_cloud.ply", "metrics.json", "train/checkpoint.pt"):
         assert (out / name).is_file(), name
+    left = [p.name for p in out.rglob("*") if ".tmp" in p.name or p.name.endswith(("@", ".blend1"))]
+    assert not left, left   # every file went through a temporary name and was renamed
     code = f"""
 import json, sys
 sys.path.insert(0, {str(ROOT)!r})

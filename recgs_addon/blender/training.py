@@ -13,7 +13,6 @@ fresh optimiser); otherwise it continues the checkpoint (``--resume``).
 """
 from __future__ import annotations
 
-import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,7 @@ from bpy.app.handlers import persistent
 from bpy.props import StringProperty
 
 from ..core.errors import RecGSError
+from ..core.io.atomic import copy_file, make_folder
 from . import gaussian_object as gobj
 from . import jobs
 from .operators import add_preview, import_survey
@@ -547,10 +547,9 @@ class RECGS_OT_export_images(bpy.types.Operator):
                                 "(RecGS, 2D Filter, Joint) first")
         if not self.directory:
             raise WorkflowError("Choose a folder to export the images to")
-        dst = Path(bpy.path.abspath(self.directory))
-        dst.mkdir(parents=True, exist_ok=True)
+        dst = make_folder(Path(bpy.path.abspath(self.directory)), "folder")
         for p in files:
-            shutil.copy2(p, dst / p.name)
+            copy_file(p, dst / p.name, "image")
         return f"Exported {len(files)} caustic-free images to {dst}"
 
 

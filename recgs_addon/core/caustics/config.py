@@ -6,6 +6,7 @@ the ground-truth photos: the upper bound), ``recgs`` (the recurrent loop, ``recg
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from ..errors import RecGSError
@@ -39,11 +40,12 @@ class CausticConfig:
     lf_tau: float = 0.02                 # lightfield: dead band (log light) below which light is not taken out
     consensus_stat: str = "mean"         # consensus: mean | median | min | quantile (of the views that see a pixel)
     consensus_q: float = 0.25            # consensus_stat quantile: which quantile
+    fit_loss: str = "l1"                 # recgs: data term of the recurrences: l1 (paper; the views' median) | l2 (their mean)
     robust_k: float = 0.0                # recgs: trim pixels brighter than the render by > k robust sigmas; 0 = off (the paper)
     gain_restore: bool = True            # recgs with trimming: rescale colours so renders keep the photos' mean light
 
     #: Settings added since a release, with the value that reproduces runs saved before them.
-    _BEFORE = {"caustic_dc": True, "robust_k": 0.0, "gain_restore": False, "estimator": "lowpass"}
+    _BEFORE = {"caustic_dc": True, "robust_k": 0.0, "gain_restore": False, "estimator": "lowpass", "fit_loss": "l1"}
 
     @classmethod
     def from_dict(cls, d: dict) -> "CausticConfig":
@@ -65,9 +67,19 @@ class CausticConfig:
             raise RecGSError(f"unknown caustic estimator {self.estimator!r} (choose from {', '.join(ESTIMATORS)})")
         if self.estimator == "consensus" and self.caustic_model != "additive":
             raise RecGSError("the consensus estimator makes additive caustic maps (caustic model additive)")
-        if self.lf_lambda < 0 or self.lf_tau < 0:
+        if not (0 <= self.lf_lambda < math.inf and 0 <= self.lf_tau < math.inf):   # NaN fails this too
             raise RecGSError(f"light-field TV weight and dead band must be >= 0, got {self.lf_lambda}, {self.lf_tau}")
+        if self.fit_loss not in ("l1", "l2"):
+            raise RecGSError(f"unknown fit loss {self.fit_loss!r} (l1 or l2)")
         if self.robust_k < 0:
             raise RecGSError(f"robust trimming k must be >= 0 (0 = off), got {self.robust_k}")
         if self.recurrence_steps < 1:
             raise RecGSError(f"recurrence steps must be at least 1, got {self.recurrence_steps}")
+        if self.warmup < 0:
+            raise RecGSError(f"warmup must be 0 or more steps, got {self.warmup}")
+        if self.max_recurrences < 0:
+            raise RecGSError(f"max recurrences must be 0 or more, got {self.max_recurrences}")
+        if not self.recurrence_tol >= 0 or math.isinf(self.recurrence_tol):   # NaN fails the first test
+            raise RecGSError(f"recurrence tolerance must be a number >= 0, got {self.recurrence_tol}")
+        if not math.isfinite(self.robust_k):
+            raise RecGSError(f"robust trimming k must be a number >= 0 (0 = off), got {self.robust_k}")

@@ -294,8 +294,9 @@ class RecGS(Method):
         self.trainer.restart_plateau(forget_best=True)
 
     def _plain_loss(self) -> None:
-        """Without C, no trimming either: the run ends as plain 3DGS."""
+        """Without C, no trimming and no L2 either: the run ends as plain 3DGS."""
         self.targets.k = 0.0
+        self.targets.loss_kind = "l1"
 
     @property
     def dropped(self) -> bool:
@@ -303,6 +304,7 @@ class RecGS(Method):
 
     def _start_recurrences(self) -> None:
         self.stage = "recurrence"
+        self.targets.loss_kind = self.ccfg.fit_loss
         self.next_due = self.trainer.step
         self.trainer.restart_plateau()
         self._snapshot(self.trainer.heldout_psnr())  # the plain model is the one not to fall below
@@ -384,6 +386,8 @@ class RecGS(Method):
         self.misses, self.drop_reason = cs.get("misses", 0), cs.get("drop_reason")
         if "light_gain" in cs:
             self.light_gain = cs["light_gain"].clone()
+        if self.stage != "warmup":
+            self.targets.loss_kind = self.ccfg.fit_loss
         if self.dropped:
             self._plain_loss()
         self._set_maps({int(i): m.to(self.trainer.device) for i, m in cs["maps"].items()})

@@ -38,16 +38,19 @@ def trim_weights(target: torch.Tensor, render: torch.Tensor, k: float) -> torch.
 
 class TrimmedTargets(FixedTargets):
     """:class:`FixedTargets` whose pixels much brighter than the render do not count
-    (``k`` = 0: all count). While it trims, the loss has no SSIM term: SSIM's windows would
-    carry a trimmed line's light into the pixels around it."""
+    (``k`` = 0: all count), fitted with an L1 or L2 data term (``loss_kind``). While it trims
+    or fits L2, the loss has no SSIM term."""
 
     def __init__(self, k: float, reference=None):
         super().__init__(reference)
         self.k = k
+        self.loss_kind = "l1"
 
     @property
     def use_ssim(self) -> bool:
-        return not self.k
+        """SSIM only with the plain L1 fit: its windows carry a trimmed line's light into the
+        pixels around it, and it is no part of a mean (L2) fit."""
+        return not self.k and self.loss_kind == "l1"
 
     def target(self, index, image, render):
         t, w = super().target(index, image, render)

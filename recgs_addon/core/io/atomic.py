@@ -43,14 +43,27 @@ def describe(exc: OSError) -> str:
     return exc.strerror or str(exc)
 
 
+def make_folder(folder: str | os.PathLike, what: str = "output folder") -> Path:
+    """Create ``folder`` (and its parents) if needed; :class:`OutputError` naming it when it is
+    a file or cannot be created."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"{folder}: is a file, not a folder (choose another {what})")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{folder}: cannot create the {what}: {describe(exc)}") from exc
+    return folder
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike, what: str = "file") -> Iterator[Path]:
     """``with atomic_path(p) as tmp: write(tmp)``: ``p`` is replaced only when the block ends
     without an exception (``what`` names the output in messages: "checkpoint", "PLY", ...)."""
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+    make_folder(path.parent, "folder")
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
         yield tmp
         with open(tmp, "rb+") as f:   # the writer may have closed it: flush what it wrote
             os.fsync(f.fileno())
@@ -66,3 +79,21 @@ def atomic_path(path: str | os.PathLike, what: str = "file") -> Iterator[Path]:
             pass
         except OSError:
             pass
+
+
+def copy_file(src: str | os.PathLike, dst: str | os.PathLike, what: str = "file") -> Path:
+    """Copy ``src`` to ``dst`` through :func:`atomic_path` (a copy cut short by a full disk
+    leaves the previous ``dst``, or none, and no partial file)."""
+    import shutil
+
+    dst = Path(dst)
+    with atomic_path(dst, what) as tmp:
+        shutil.copy2(src, tmp)
+    return dst
+
+
+def copy_tree(src: str | os.PathLike, dst: str | os.PathLike, what: str = "file") -> list[Path]:
+    """Copy every file under ``src`` to the same place under ``dst`` with :func:`copy_file`."""
+    src, dst = Path(src), Path(dst)
+    return [copy_file(p, dst / p.relative_to(src), what) for p in sorted(src.rglob("*")) if p.is_file()]
+

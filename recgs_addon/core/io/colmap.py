@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
-import struct
 import tempfile
 import warnings
 from dataclasses import dataclass, field
@@ -23,6 +22,7 @@ import numpy as np
 
 from ..model.cameras import Camera
 from ..errors import ImageError, SceneError
+from .colmap_checks import check_model, check_text_tracks, diagnose_failure
 from .images import image_size, read_image
 
 #: Camera models used as they are.
@@ -33,9 +33,6 @@ UNDISTORTED_MODELS = (
     "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "RAD_TAN_THIN_PRISM_FISHEYE", "FOV",
     "SIMPLE_DIVISION", "DIVISION",
 )
-#: Number of parameters per COLMAP camera model id (COLMAP's models.h), for checking cameras.bin.
-_MODEL_NUM_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12,
-                     11: 16, 12: 4, 13: 5, 14: 3, 15: 4, 16: 6, 17: 2}
 _MODEL_FILES = ("cameras", "images", "points3D")
 
 
@@ -77,6 +74,8 @@ class Scene:
 def find_model_dir(scene_dir: str | os.PathLike) -> Path:
     """The folder holding cameras/images/points3D: ``sparse/0``, ``sparse`` or ``scene_dir``."""
     scene_dir = Path(scene_dir)
+    if scene_dir.exists() and not scene_dir.is_dir():
+        raise SceneError(f"{scene_dir}: is a file, not a folder (choose the survey's folder)")
     if not scene_dir.is_dir():
         raise SceneError(f"{scene_dir}: folder does not exist")
     candidates = [scene_dir / "sparse" / "0", scene_dir / "sparse", scene_dir]
@@ -100,179 +99,21 @@ def _model_format(model_dir: Path) -> str:
     raise SceneError(f"{model_dir}: no cameras.bin or cameras.txt")
 
 
-# --- binary model checks -------------------------------------------------------------------
-# pycolmap reads a truncated cameras.bin without complaint, so the binary files are walked
-# here first. Only cameras and images are walked record by record (a few hundred records);
-# points3D.bin is checked by its exact size, computed from the observations in images.bin.
-
-def _check_cameras_bin(path: Path) -> None:
-    data = path.read_bytes()
-    if len(data) < 8:
-        raise SceneError(f"{path}: file is truncated ({len(data)} bytes)")
-    (n,) = struct.unpack_from("<Q", data, 0)
-    off = 8
-    for i in range(n):
-        if off + 24 > len(data):
-            raise SceneError(f"{path}: file is truncated (camera {i + 1} of {n} is cut off)")
-        _, model_id, _, _ = struct.unpack_from("<iiQQ", data, off)
-        if model_id not in _MODEL_NUM_PARAMS:
-            raise SceneError(f"{path}: camera {i + 1} has unknown camera model id {model_id}; "
-                             "the file is corrupt or from an unsupported COLMAP version")
-        off += 24 + 8 * _MODEL_NUM_PARAMS[model_id]
-    if off != len(data):
-        what = "truncated" if off > len(data) else f"longer than its {n} cameras ({len(data) - off} extra bytes)"
-        raise SceneError(f"{path}: file is {what}; it may be corrupt")
-
-
-def _check_images_bin(path: Path) -> int:
-    """Walk images.bin; return the number of 2D points that have a 3D point."""
-    data = path.read_bytes()
-    if len(data) < 8:
-        raise SceneError(f"{path}: file is truncated ({len(data)} bytes)")
-    (n,) = struct.unpack_from("<Q", data, 0)
-    off, n_obs = 8, 0
-    for i in range(n):
-        end_fixed = off + 64
-        name_end = data.find(b"\0", end_fixed) if end_fixed <= len(data) else -1
-        if name_end < 0 or name_end + 9 > len(data):
-            raise SceneError(f"{path}: file is truncated (image {i + 1} of {n} is cut off)")
-        (n2d,) = struct.unpack_from("<Q", data, name_end + 1)
-        off = name_end + 9
-        if off + 24 * n2d > len(data):
-            raise SceneError(f"{path}: file is truncated (image {i + 1} of {n} is cut off)")
-        if n2d:
-            ids = np.frombuffer(data, dtype="<i8", count=3 * n2d, offset=off)[2::3]
-            n_obs += int(np.count_nonzero(ids != -1))
-        off += 24 * n2d
-    if off != len(data):
-        raise SceneError(f"{path}: file is longer than its {n} images ({len(data) - off} extra bytes); "
-                         "it may be corrupt")
-    return n_obs
-
-
-def _check_points_bin(path: Path, n_obs: int) -> None:
-    size = path.stat().st_size
-    if size < 8:
-        raise SceneError(f"{path}: file is truncated ({size} bytes)")
-    with open(path, "rb") as f:
-        (n,) = struct.unpack("<Q", f.read(8))
-    # per point: id u64, xyz 3 f64, rgb 3 u8, error f64, track length u64; 8 bytes per track element
-    expected = 8 + 51 * n + 8 * n_obs
-    if size != expected:
-        what = "truncated" if size < expected else "longer than expected"
-        raise SceneError(f"{path}: file is {what} ({size} bytes, {expected} expected for {n} points "
-                         f"and {n_obs} observations in images.bin); it may be corrupt")
-
-
-#: COLMAP's sensor types (sensor.h): CAMERA, IMU.
-_SENSOR_TYPES = (0, 1)
-
-
-def _check_rigs_bin(path: Path) -> None:
-    """rigs.bin (COLMAP 3.12+): per rig id u32, sensor count u32, then the reference sensor
-    (type i32, id u32) and each other sensor (type, id, has-pose u8, pose 7 f64 if it has one).
-    Without this walk a truncated file surfaces as pycolmap's internal check message."""
-    data = path.read_bytes()
-    if len(data) < 8:
-        raise SceneError(f"{path}: file is truncated ({len(data)} bytes)")
-    (n,) = struct.unpack_from("<Q", data, 0)
-    off = 8
-    for i in range(n):
-        cut = SceneError(f"{path}: file is truncated (rig {i + 1} of {n} is cut off)")
-        if off + 8 > len(data):
-            raise cut
-        _, n_sensors = struct.unpack_from("<II", data, off)
-        off += 8
-        for j in range(n_sensors):
-            if off + 8 > len(data):
-                raise cut
-            (kind,) = struct.unpack_from("<i", data, off)
-            if kind not in _SENSOR_TYPES:
-                raise SceneError(f"{path}: rig {i + 1} has a sensor of unknown type {kind}; the file is corrupt")
-            off += 8
-            if j:  # the reference sensor has no pose; the others say whether they have one
-                if off + 1 > len(data):
-                    raise cut
-                has_pose = data[off]
-                off += 1 + (56 if has_pose else 0)
-                if off > len(data):
-                    raise cut
-    if off != len(data):
-        raise SceneError(f"{path}: file is longer than its {n} rigs ({len(data) - off} extra bytes); "
-                         "it may be corrupt")
-
-
-def _check_frames_bin(path: Path) -> None:
-    """frames.bin (COLMAP 3.12+): per frame id u32, rig id u32, pose 7 f64, data count u32,
-    then per data (sensor type i32, sensor id u32, data id u64)."""
-    data = path.read_bytes()
-    if len(data) < 8:
-        raise SceneError(f"{path}: file is truncated ({len(data)} bytes)")
-    (n,) = struct.unpack_from("<Q", data, 0)
-    off = 8
-    for i in range(n):
-        if off + 68 > len(data):
-            raise SceneError(f"{path}: file is truncated (frame {i + 1} of {n} is cut off)")
-        (n_data,) = struct.unpack_from("<I", data, off + 64)
-        off += 68
-        if off + 16 * n_data > len(data):
-            raise SceneError(f"{path}: file is truncated (frame {i + 1} of {n} is cut off)")
-        kinds = np.frombuffer(data, dtype="<i4", count=4 * n_data, offset=off)[::4] if n_data else []
-        bad = [int(k) for k in kinds if k not in _SENSOR_TYPES]
-        if bad:
-            raise SceneError(f"{path}: frame {i + 1} names a sensor of unknown type {bad[0]}; the file is corrupt")
-        off += 16 * n_data
-    if off != len(data):
-        raise SceneError(f"{path}: file is longer than its {n} frames ({len(data) - off} extra bytes); "
-                         "it may be corrupt")
-
-
-def _diagnose_text(model_dir: Path) -> str | None:
-    """After pycolmap failed on a text model, find the first malformed line (error path only)."""
-    def floats(tokens):
-        try:
-            [float(t) for t in tokens]
-            return True
-        except ValueError:
-            return False
-
-    for name in _MODEL_FILES:
-        path = model_dir / f"{name}.txt"
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-        content = [(i + 1, ln.split()) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
-        if name == "cameras":
-            for no, tok in content:
-                if len(tok) < 5 or not tok[0].isdigit() or not floats(tok[2:]):
-                    return f"{path}: line {no} is not a camera (CAMERA_ID MODEL WIDTH HEIGHT PARAMS[])"
-        elif name == "images":
-            for k, (no, tok) in enumerate(content[::2]):
-                if len(tok) < 10 or not floats(tok[:9]):
-                    return f"{path}: line {no} is not an image (IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME)"
-        else:
-            for no, tok in content:
-                if len(tok) < 8 or not floats(tok) or (len(tok) - 8) % 2:
-                    return f"{path}: line {no} is not a 3D point (POINT3D_ID X Y Z R G B ERROR TRACK[])"
-    return None
-
-
 def read_reconstruction(model_dir: str | os.PathLike):
-    """Read a COLMAP model with pycolmap after checking its files. Returns pycolmap.Reconstruction."""
+    """Read a COLMAP model with pycolmap after checking its files (:mod:`.colmap_checks`).
+    Returns pycolmap.Reconstruction."""
     import pycolmap
 
     model_dir = Path(model_dir)
     ext = _model_format(model_dir)
-    if ext == ".bin":
-        for name, check in (("rigs.bin", _check_rigs_bin), ("frames.bin", _check_frames_bin)):
-            if (model_dir / name).exists():  # COLMAP 3.12+ writes them; older models have neither
-                check(model_dir / name)
-        _check_cameras_bin(model_dir / "cameras.bin")
-        n_obs = _check_images_bin(model_dir / "images.bin")
-        _check_points_bin(model_dir / "points3D.bin", n_obs)
+    index = check_model(model_dir, ext)
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
-    except Exception as exc:  # pycolmap raises ValueError/MemoryError/RuntimeError
-        where = _diagnose_text(model_dir) if ext == ".txt" else None
+    except Exception as exc:  # pycolmap raises ValueError/MemoryError/RuntimeError/IndexError
+        where = diagnose_failure(model_dir, index)
         raise SceneError(where or f"{model_dir}: pycolmap could not read the COLMAP model: {exc}") from exc
+    if ext == ".txt":
+        check_text_tracks(model_dir, rec)
     return rec
 
 

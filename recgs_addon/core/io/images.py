@@ -2,7 +2,7 @@
 
 Images are returned as float32 arrays of shape (H, W, 3) (RGB; grey is expanded, alpha
 dropped). 8- and 16-bit integer files (PNG, JPEG, TIFF) are normalised to [0, 1]; float
-files (EXR, float TIFF) keep their values.
+files (EXR, float TIFF) keep their values, and one with NaN or infinite pixels is refused.
 """
 from __future__ import annotations
 
@@ -34,6 +34,8 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
     """(width, height) of an image file, read from its header only."""
     oiio = _oiio()
     path = Path(path)
+    if path.is_dir():
+        raise ImageError(f"{path}: is a folder, not an image file")
     if not path.is_file():
         raise ImageError(f"{path}: image file is missing")
     inp = oiio.ImageInput.open(str(path))
@@ -59,11 +61,17 @@ def read_image(path: str | os.PathLike, downscale: int = 1) -> np.ndarray:
     """
     oiio = _oiio()
     path = Path(path)
+    if path.is_dir():
+        raise ImageError(f"{path}: is a folder, not an image file")
     if not path.is_file():
         raise ImageError(f"{path}: image file is missing")
     buf = oiio.ImageBuf(str(path))
     if buf.has_error or buf.spec().width <= 0:
         raise ImageError(f"{path}: cannot read image ({buf.geterror() or 'unknown format'})")
+    # decode every pixel now: a file cut short fails here, once (read lazily, a resize of it
+    # retries the missing tiles over and over, and OpenImageIO prints each failure)
+    if not buf.read(0, 0, True):
+        raise ImageError(f"{path}: cannot decode image pixels ({_first_line(buf.geterror())})")
     if downscale != 1:
         if downscale < 1 or int(downscale) != downscale:
             raise ImageError(f"{path}: downscale must be an integer >= 1, got {downscale}")
@@ -88,6 +96,11 @@ def read_image(path: str | os.PathLike, downscale: int = 1) -> np.ndarray:
         arr = np.repeat(arr[:, :, :1], 3, axis=2)
     elif c >= 3:
         arr = arr[:, :, :3]
+    bad = ~np.isfinite(arr).all(axis=2)
+    if bad.any():   # float files (EXR, float TIFF) can hold them; no loss or score survives one
+        y, x = np.argwhere(bad)[0]
+        raise ImageError(f"{path}: {int(bad.sum())} pixels are NaN or infinite (the first at x={x}, y={y}); "
+                         "replace them before training on this image")
     return np.ascontiguousarray(arr, dtype=np.float32)
 
 

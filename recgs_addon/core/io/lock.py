@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Iterator
 
 from ..errors import RecGSError
+from .atomic import OutputError, describe, make_folder
 
 LOCK_NAME = ".recgs.lock"
 
@@ -41,10 +42,12 @@ def _try_lock(fd: int) -> bool:
 @contextmanager
 def folder_lock(folder: str | os.PathLike) -> Iterator[Path]:
     """Hold ``folder`` for this process; :class:`FolderBusyError` if another one holds it."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(folder)
     path = folder / LOCK_NAME
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot create the job's lock file: {describe(exc)}") from exc
     try:
         if not _try_lock(fd):
             try:

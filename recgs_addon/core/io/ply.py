@@ -83,6 +83,8 @@ def read_ply_elements(path: str | os.PathLike, wanted: str = "vertex") -> dict[s
     list properties (faces) are only allowed after ``wanted`` (they are not read).
     """
     path = Path(path)
+    if path.is_dir():
+        raise PlyError(f"{path}: is a folder, not a PLY file")
     if not path.is_file():
         raise PlyError(f"{path}: file does not exist")
     out = {}
@@ -210,6 +212,8 @@ def records_to_gaussians(rec: np.ndarray, source: str = "<records>", drop_nonfin
     if drop_nonfinite:
         ok = g.finite_mask()
         dropped = int(n - ok.sum())
+        if dropped and dropped == n:
+            raise PlyError(f"{source}: all {n} Gaussians have NaN or Inf values; there is nothing to import")
         if dropped:
             warnings.warn(f"{source}: dropped {dropped} of {n} Gaussians with NaN or Inf values", stacklevel=2)
             g = g.subset(ok)

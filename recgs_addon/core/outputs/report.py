@@ -166,5 +166,6 @@ def write_benchmark_report(out: Path, surveys: Sequence[str], methods: Sequence[
     if notes:
         lines += ["", "## Notes", ""] + notes
     path = out / "benchmark.md"
-    path.write_text("\n".join(lines) + "\n")
+    with atomic_path(path, "report") as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
     return path

@@ -74,6 +74,14 @@ class TrainConfig:
             raise RecGSError(f"downscale must be an integer >= 1, got {self.downscale}")
         if self.budget is not None and self.budget < 1:
             raise RecGSError(f"budget must be at least 1 Gaussian, got {self.budget}")
+        if self.iterations < 1:
+            raise RecGSError(f"iterations must be at least 1, got {self.iterations}")
+        if self.max_minutes is not None and not self.max_minutes > 0:   # NaN fails this too
+            raise RecGSError(f"the time limit must be a number of minutes above 0, got {self.max_minutes}")
+        if self.holdout_every < 0:
+            raise RecGSError(f"holdout every must be 0 (hold out none) or a positive number, got {self.holdout_every}")
+        if not 0 <= self.seed < 2 ** 64:   # what numpy's and torch's generators take
+            raise RecGSError(f"seed must be a whole number from 0 to 2^64 - 1, got {self.seed}")
 
 
 def preset(name: str, **overrides) -> TrainConfig:

@@ -72,6 +72,20 @@ class TrainData:
             self._cache[key] = (cam, torch.from_numpy(self.gt_scene.load_image(cam, self.downscale)).to(self.device))
         return self._cache[key][1]
 
+    def load_all(self, level: int = 1) -> None:
+        """Read every image a run uses now: the training views at ``level``, the held-out views
+        at the training size and the ground truth. A job calls this before it writes anything,
+        so an image whose header reads but whose pixels do not (a cut-off PNG) stops it with
+        an :class:`~..errors.ImageError` naming the file instead of at some later step. The
+        images stay cached, as training would have cached them on first use."""
+        for i in self.train_ids:
+            self.view(i, level)
+        for i in self.test_ids:
+            self.view(i, 1)
+        if self.gt_scene is not None:
+            for i in range(len(self.gt_scene.cameras)):
+                self.gt_view(i)
+
     def drop_level(self, level: int) -> None:
         for key in [k for k in self._cache if k[1] == level]:
             del self._cache[key]

@@ -66,16 +66,24 @@ def l1(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def training_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = LAMBDA_DSSIM,
-                  weight: Optional[torch.Tensor] = None):
-    """(1 - lambda) L1 + lambda (1 - SSIM), as INRIA 3DGS and RecGS. ``render``, ``target``:
+                  weight: Optional[torch.Tensor] = None, kind: str = "l1"):
+    """(1 - lambda) D + lambda (1 - SSIM), with D the mean absolute error (``kind="l1"``, as
+    INRIA 3DGS and RecGS) or the mean squared error (``"l2"``). ``render``, ``target``:
     (H, W, 3). ``weight`` (H, W), optional: how much each pixel counts; both terms become
     weighted means over the pixels (the SSIM term of each pixel's window), so a weight of 1
-    everywhere gives the plain loss."""
+    everywhere gives the plain loss.
+
+    Where views disagree about a point (moving light), an L1 fit takes the *median* of what
+    they show and an L2 fit the *mean*; benchmarks/pointwise_bound.py measures the two."""
+    if kind not in ("l1", "l2"):
+        raise ValueError(f"unknown loss kind {kind!r} (l1 or l2)")
+    d = render - target
+    d = d.abs() if kind == "l1" else d * d
     if weight is None:
-        return (1.0 - lambda_dssim) * l1(render, target) + lambda_dssim * (1.0 - ssim(render, target))
+        loss = (1.0 - lambda_dssim) * d.mean()
+        return loss + lambda_dssim * (1.0 - ssim(render, target)) if lambda_dssim else loss
     total = weight.sum().clamp_min(1e-12)
-    w = weight.unsqueeze(-1)
-    loss = (1.0 - lambda_dssim) * ((render - target).abs() * w).sum() / (3 * total)
+    loss = (1.0 - lambda_dssim) * (d * weight.unsqueeze(-1)).sum() / (3 * total)
     if lambda_dssim:
         smap = ssim_map(render, target).mean(1)[0]   # (H, W)
         loss = loss + lambda_dssim * ((1.0 - smap) * weight).sum() / total

@@ -9,7 +9,7 @@ The trainer (``trainer.py``) knows nothing of caustics. Per view it asks its
 * ``reference(index, image, render)``: for a *held-out* view, the image a render is scored
   against for the run's own decisions (growth, SH degree, plateau).
 
-plus ``use_ssim`` (whether the loss keeps its SSIM term) and ``param_groups()``: extra tensors fitted with the Gaussians (the ``joint`` baseline's
+plus ``use_ssim`` (whether the loss keeps its SSIM term), ``loss_kind`` (L1 or L2 data term) and ``param_groups()``: extra tensors fitted with the Gaussians (the ``joint`` baseline's
 per-view fields), stepped by a second Adam the trainer owns.
 
 The base class fits the photos as captured, every pixel counting: plain 3DGS. The caustic
@@ -33,6 +33,8 @@ class Objective:
 
     #: whether the loss keeps its SSIM term (``TrainConfig.lambda_dssim``) for this objective
     use_ssim = True
+    #: the data term: "l1" (the median of what the views show) or "l2" (their mean)
+    loss_kind = "l1"
 
     def target(self, index: int, image: torch.Tensor,
                render: torch.Tensor) -> tuple[torch.Tensor, Optional[torch.Tensor]]:

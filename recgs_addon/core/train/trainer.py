@@ -196,7 +196,8 @@ class Trainer:
                      background=torch.tensor(c.background, dtype=torch.float32), compiled=self.compiler.compiled(),
                      gather=rg)
         target, weight = self.objective.target(index, img, out.rgb.detach())
-        loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight)
+        loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight,
+                             self.objective.loss_kind)
         value = loss.item()
         if not math.isfinite(value):   # skip the update: the parameters keep their last good values
             self.bad_steps += 1
