@@ -12,9 +12,9 @@ Cases:
   no-compiler   PATH holds no C++ compiler (and CXX is unset), empty caches: numba's path (eager at once
                 while a background process fills numba's cold cache, then numba)
   no-compiler-warm  the same on the cache no-compiler left behind (numba from the first step)
-  auto-cold     the default: eager at once, a background warm-up, then compiled
-  compile-first the behaviour before the switch: compile (cold) before the first step
-  auto-warm     the default again, on the cache auto-cold left behind (warm-up run first)
+  auto-cold     a compiler, numba refused (RECGS_NUMBA=0): eager at once, a background warm-up, then compiled
+  compile-first the behaviour before the switch: compile (cold) before the first step (RECGS_NUMBA=0)
+  auto-warm     the same, on the cache auto-cold left behind (warm-up run first)
   eager         --eager
 
 All cases run one after another in one invocation (the machine is shared: compare them with
@@ -45,6 +45,8 @@ def run_case(case: str, scene: Path, iterations: int, work: Path) -> dict:
     env = dict(os.environ, RECGS_CACHE_DIR=str(cache), PYTHONPATH=str(ROOT))
     for var in ("TORCHINDUCTOR_CACHE_DIR", "NUMBA_CACHE_DIR", "RECGS_NUMBA"):
         env.pop(var, None)
+    if case.startswith("auto") or case == "compile-first":   # torch.compile's path (numba is the default)
+        env["RECGS_NUMBA"] = "0"
     if case.startswith("no-compiler"):
         empty = work / "empty-bin"
         empty.mkdir(exist_ok=True)

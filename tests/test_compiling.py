@@ -110,16 +110,40 @@ def test_numba_on_request_even_with_a_compiler(numba_machine, monkeypatch):
     assert sw.compiled() == "numba" and sw.proc is None       # no torch.compile warm-up
 
 
-def test_numba_stands_in_while_torch_compile_warms_up(numba_machine, monkeypatch):
+def test_numba_first_even_with_a_compiler(numba_machine, monkeypatch):
+    """numba is the default wherever it is installed (the fastest path measured): warm, from
+    the first step with no torch.compile warm-up; cold, eager while its own warm-up runs."""
+    monkeypatch.setattr(compiling, "find_compiler", lambda: "/usr/bin/c++")
+    started = []
+
+    def start(self, cmd, env, nice=True):
+        started.append(cmd)
+        self.proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"], stderr=subprocess.PIPE)
+    monkeypatch.setattr(CompileSwitch, "_start", start)
+    sw = CompileSwitch(None)                                   # cold numba cache
+    assert sw.numba == "warming" and sw.compiled() is False
+    assert started and "--numba" in started[0]                 # numba's warm-up, not inductor's
+    sw.close()
+    numba_machine.write_text("warm")
+    started.clear()
+    sw = CompileSwitch(None)
+    assert sw.compiled() == "numba" and not started
+
+
+def test_torch_compile_when_numba_fails_or_is_refused(numba_machine, monkeypatch):
     numba_machine.write_text("warm")
     monkeypatch.setattr(compiling, "find_compiler", lambda: "/usr/bin/c++")
     monkeypatch.setattr(CompileSwitch, "_start", _fake_start(
         "import pathlib, time; time.sleep(0.3); p = pathlib.Path(MARKER); "
         "p.parent.mkdir(parents=True, exist_ok=True); p.write_text('ok')"))
+    monkeypatch.setattr(compiling, "_numba_ready", lambda: False)   # numba's kernels fail to load
     sw = CompileSwitch(None)
-    assert sw.state == "warming" and sw.compiled() == "numba"
+    assert sw.numba == "failed" and sw.state == "warming" and sw.compiled() is False
     sw.proc.wait()
     assert sw.compiled() is True
+    monkeypatch.setattr(compiling, "_numba_ready", lambda: True)
+    monkeypatch.setenv("RECGS_NUMBA", "0")
+    assert CompileSwitch(None).compiled() is True             # refused: torch.compile (warm now)
 
 
 def test_explicit_choices_are_kept(cache):
