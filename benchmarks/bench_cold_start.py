@@ -9,10 +9,12 @@ step at which the compiled path took over, held-out PSNR against the captured ph
 against ground truth where the survey has it) and the Gaussian count.
 
 Cases:
-  no-compiler   PATH holds no C++ compiler (and CXX is unset): eager throughout
-  auto-cold     the default: eager at once, a background warm-up, then compiled
-  compile-first the behaviour before the switch: compile (cold) before the first step
-  auto-warm     the default again, on the cache auto-cold left behind (warm-up run first)
+  no-compiler   PATH holds no C++ compiler (and CXX is unset), empty caches: numba's path (eager at once
+                while a background process fills numba's cold cache, then numba)
+  no-compiler-warm  the same on the cache no-compiler left behind (numba from the first step)
+  auto-cold     a compiler, numba refused (RECGS_NUMBA=0): eager at once, a background warm-up, then compiled
+  compile-first the behaviour before the switch: compile (cold) before the first step (RECGS_NUMBA=0)
+  auto-warm     the same, on the cache auto-cold left behind (warm-up run first)
   eager         --eager
 
 All cases run one after another in one invocation (the machine is shared: compare them with
@@ -32,20 +34,27 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-CASES = ("no-compiler", "auto-cold", "compile-first", "auto-warm", "eager")
+CASES = ("no-compiler", "no-compiler-warm", "auto-cold", "compile-first", "auto-warm", "eager")
 
 
 def run_case(case: str, scene: Path, iterations: int, work: Path) -> dict:
-    cache = work / ("cache-auto" if case in ("auto-cold", "auto-warm") else f"cache-{case}")
-    if case == "auto-cold" and cache.exists():
+    shared = {"auto-cold": "cache-auto", "auto-warm": "cache-auto", "no-compiler-warm": "cache-no-compiler"}
+    cache = work / shared.get(case, f"cache-{case}")
+    if case in ("auto-cold", "no-compiler") and cache.exists():
         shutil.rmtree(cache)
     env = dict(os.environ, RECGS_CACHE_DIR=str(cache), PYTHONPATH=str(ROOT))
-    env.pop("TORCHINDUCTOR_CACHE_DIR", None)
-    if case == "no-compiler":
+    for var in ("TORCHINDUCTOR_CACHE_DIR", "NUMBA_CACHE_DIR", "RECGS_NUMBA"):
+        env.pop(var, None)
+    if case.startswith("auto") or case == "compile-first":   # torch.compile's path (numba is the default)
+        env["RECGS_NUMBA"] = "0"
+    if case.startswith("no-compiler"):
         empty = work / "empty-bin"
         empty.mkdir(exist_ok=True)
         env["PATH"] = str(empty)
         env.pop("CXX", None)
+    if case == "no-compiler-warm":   # finish the warm-up no-compiler started (killed at its end), or run alone
+        subprocess.run([sys.executable, "-m", "recgs_addon.core.train.compiling", "--numba"], env=env,
+                       check=True, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     if case == "auto-warm":   # finish the warm-up the cold run started (it is killed at the run's end)
         subprocess.run([sys.executable, "-m", "recgs_addon.core.train.compiling"], env=env, check=True,
                        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -56,7 +65,8 @@ def run_case(case: str, scene: Path, iterations: int, work: Path) -> dict:
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     first = last = None
-    switched = None
+    switched = switched_s = None
+    path = None
     done = {}
     for line in proc.stdout:
         if not line.startswith("{"):
@@ -67,13 +77,19 @@ def run_case(case: str, scene: Path, iterations: int, work: Path) -> dict:
             first = first if first is not None else now
             last = now
         if ev.get("event") == "compile" and "from step" in ev.get("message", ""):
-            switched = ev.get("iteration")
+            switched, switched_s = ev.get("iteration"), now
+            path = "numba" if "numba" in ev["message"] else "compiled"
         if ev.get("event") == "done":
             done = ev
     proc.wait()
     total = time.perf_counter() - t0
+    state = (done.get("compile") or {})
+    if switched is None and state.get("state") == "compiled":
+        path = "compiled"
+    elif switched is None and state.get("numba") == "ready":
+        path = "numba"
     return {"case": case, "first_step_s": first, "run_s": done.get("seconds"), "total_s": total,
-            "steps": done.get("iterations"), "switched_at": switched,
+            "steps": done.get("iterations"), "switched_at": switched, "switched_s": switched_s, "fast_path": path,
             "psnr": done.get("psnr_test"), "psnr_gt": done.get("psnr_test_gt"), "gaussians": done.get("gaussians"),
             "rc": proc.returncode}
 
@@ -92,13 +108,14 @@ def main(argv=None) -> int:
             print(json.dumps(r), flush=True)
     f = lambda v, p=1: "-" if v is None else f"{v:.{p}f}"  # noqa: E731
     print(f"\n{a.scene}, {a.iterations} steps, torch threads as default")
-    print("| case | first step (s) | training (s) | whole job (s) | steps/s | compiled from step | "
+    print("| case | first step (s) | training (s) | whole job (s) | steps/s | fast path | from step | at (s) | "
           "held-out PSNR (dB) | vs ground truth (dB) | Gaussians |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         sps = r["steps"] / r["run_s"] if r["steps"] and r["run_s"] else None
+        from_step = r['switched_at'] if r['switched_at'] is not None else (1 if r['fast_path'] else '-')
         print(f"| {r['case']} | {f(r['first_step_s'])} | {f(r['run_s'])} | {f(r['total_s'])} | {f(sps, 2)} | "
-              f"{r['switched_at'] if r['switched_at'] is not None else '-'} | {f(r['psnr'], 2)} | "
+              f"{r['fast_path'] or 'eager'} | {from_step} | {f(r.get('switched_s'))} | {f(r['psnr'], 2)} | "
               f"{f(r['psnr_gt'], 2)} | {r['gaussians']} |")
     return 0 if all(r["rc"] == 0 for r in rows) else 1
 

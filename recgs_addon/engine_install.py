@@ -1,11 +1,11 @@
-"""The training engine: torch, installed on request into a per-user folder (no bpy here).
+"""The training engine: torch and numba, installed on request into a per-user folder (no bpy here).
 
 torch is too large to bundle in the extension zip, so the artist installs it with one click
 (``blender/engine.py``): pip runs in a background process with ``--target`` pointing at
 ``ENGINE_ROOT/py3.X/site-packages.tmp``; only when pip succeeds *and* a fresh Python imports
 torch from there is the folder renamed to ``site-packages`` (the old one, if any, is removed
 after the swap). A failed, cancelled or interrupted install leaves nothing but a ``.tmp``
-folder, which the next attempt deletes first. Blender's own Python never imports torch: jobs
+folder, which the next attempt deletes first. Blender's own Python never imports torch or numba: jobs
 run in a worker process whose ``PYTHONPATH`` (:func:`worker_env`) holds the package, the
 engine and the site-packages of the extensions' bundled wheels.
 
@@ -25,8 +25,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
 
-#: What the engine holds. torch 2.13.0 is the version the trainer is tested with.
+#: What the engine always holds. torch 2.13.0 is the version the trainer is tested with.
 ENGINE_REQUIREMENTS = ("torch==2.13.0",)
+#: numba: the rasterizer's compiler-free fast path (core/render/numba_kernels.py; LLVM ships in
+#: its wheels, for Python 3.10-3.13 on Linux, Windows and macOS, x64 and arm64). Only the worker
+#: imports it; without it training runs on eager torch (slower, same numbers).
+NUMBA_REQUIREMENT = "numba==0.61.2"
+#: The numpy versions numba 0.61.2 works with: [1.24, 2.3).
+NUMBA_NUMPY = ((1, 24), (2, 3))
 #: Extra pip arguments for the engine install, from the environment (e.g. a local index:
 #: ``RECGS_ENGINE_PIP_ARGS="--index-url https://mirror/simple"``; set and empty: none). On Linux, PyPI's torch is
 #: the CUDA build (several GB); the CPU build comes from PyTorch's own index, added by default.
@@ -95,10 +101,38 @@ def worker_env(package_parent: Path, engine: Optional[Path], base: Optional[dict
     return env
 
 
-def pip_command(target: Path, python: str = sys.executable, requirements: Sequence[str] = ENGINE_REQUIREMENTS,
+def _numpy_version() -> Optional[str]:
+    try:
+        import numpy
+        return numpy.__version__
+    except Exception:  # noqa: BLE001 - no (working) numpy here
+        return None
+
+
+def engine_requirements(numpy_version: Optional[str] = "") -> tuple:
+    """What to install: torch, and numba pinned to the numpy of the Python that installs (``""``:
+    this one's; Blender's). pip ``--target`` installs dependencies again into the engine, which
+    comes first on the worker's ``PYTHONPATH``: an engine numpy of another version would shadow
+    Blender's there, the same version is harmless. numba is left out where that numpy is
+    missing or outside numba's range (training then runs on eager torch)."""
+    if numpy_version == "":
+        numpy_version = _numpy_version()
+    try:
+        v = tuple(int(x) for x in re.match(r"(\d+)\.(\d+)", numpy_version or "").groups())
+    except (AttributeError, ValueError):
+        return ENGINE_REQUIREMENTS
+    if not NUMBA_NUMPY[0] <= v < NUMBA_NUMPY[1]:
+        return ENGINE_REQUIREMENTS
+    return ENGINE_REQUIREMENTS + (NUMBA_REQUIREMENT, f"numpy=={numpy_version}")
+
+
+def pip_command(target: Path, python: str = sys.executable, requirements: Optional[Sequence[str]] = None,
                 extra: Optional[Sequence[str]] = None, platform: str = sys.platform) -> list[str]:
-    """The pip command installing ``requirements`` into ``target``. Uses Blender's pip, or, where
-    the Python has none, the pip wheel that ``ensurepip`` carries (runnable as is)."""
+    """The pip command installing ``requirements`` (default :func:`engine_requirements`) into
+    ``target``. Uses Blender's pip, or, where the Python has none, the pip wheel that
+    ``ensurepip`` carries (runnable as is)."""
+    if requirements is None:
+        requirements = engine_requirements()
     base = [python, "-m", "pip"]
     try:
         import importlib.util
@@ -189,12 +223,12 @@ class Installer:
     final folder; :meth:`poll` returns ``None`` while running, then ``"done"``, ``"failed"`` or
     ``"cancelled"`` (``message`` says why)."""
 
-    def __init__(self, root: Path, python: str = sys.executable, requirements=ENGINE_REQUIREMENTS,
+    def __init__(self, root: Path, python: str = sys.executable, requirements: Optional[Sequence[str]] = None,
                  extra: Optional[Sequence[str]] = None, command: Optional[list] = None):
         self.final = engine_site(root)
         self.tmp = self.final.with_name("site-packages.tmp")
         self.python = python
-        self.requirements = list(requirements)
+        self.requirements = list(engine_requirements() if requirements is None else requirements)
         self.progress = Progress()
         self.message = ""
         self.status: Optional[str] = None
@@ -253,7 +287,10 @@ class Installer:
 
     def _finish(self) -> None:
         """Check that a fresh Python imports torch from the new folder, then swap it in."""
-        code = "import json, torch; print(json.dumps({'torch': torch.__version__, 'file': torch.__file__}))"
+        code = ("import json, torch\n"
+                "try:\n    import numba; nb = numba.__version__\n"
+                "except Exception:\n    nb = None   # optional: training then runs on eager torch\n"
+                "print(json.dumps({'torch': torch.__version__, 'numba': nb, 'file': torch.__file__}))")
         env = dict(os.environ, PYTHONPATH=str(self.tmp), PYTHONNOUSERSITE="1")
         r = subprocess.run([self.python, "-c", code], capture_output=True, text=True, env=env, timeout=300)
         if r.returncode != 0:

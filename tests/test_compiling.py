@@ -17,8 +17,27 @@ ROOT = Path(__file__).resolve().parents[1]
 def cache(tmp_path, monkeypatch):
     monkeypatch.setenv("RECGS_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "elsewhere"))  # restored after
-    monkeypatch.setattr(compiling, "_numba_ready", lambda: False)   # a machine without numba
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache" / "numba"))
+    monkeypatch.delenv("RECGS_NUMBA", raising=False)
+    monkeypatch.setattr(compiling, "numba_importable", lambda: False)   # a machine without numba
+    monkeypatch.setattr(compiling, "_numba_ready", lambda: False)
     return tmp_path / "cache"
+
+
+@pytest.fixture
+def numba_machine(cache, monkeypatch, tmp_path):
+    """numba installed (its kernels load instantly here); the warm marker in a temp folder."""
+    monkeypatch.setattr(compiling, "numba_importable", lambda: True)
+    monkeypatch.setattr(compiling, "_numba_ready", lambda: True)
+    m = tmp_path / "numba-warm"
+    monkeypatch.setattr(compiling, "numba_marker", lambda: m)
+    return m
+
+
+def _no_compiler(monkeypatch, tmp_path):
+    monkeypatch.delenv("CXX", raising=False)
+    monkeypatch.setenv("PATH", str(tmp_path))     # nothing on it
+    assert compiling.find_compiler() is None
 
 
 def test_no_compiler_means_eager(cache, monkeypatch, tmp_path):
@@ -30,15 +49,101 @@ def test_no_compiler_means_eager(cache, monkeypatch, tmp_path):
     assert "no C++ compiler" in sw.summary()["reason"] and sw.proc is None
 
 
-def test_numba_stands_in_while_torch_compile_cannot(cache, monkeypatch, tmp_path):
-    monkeypatch.setattr(compiling, "_numba_ready", lambda: True)
-    monkeypatch.delenv("CXX", raising=False)
-    monkeypatch.setenv("PATH", str(tmp_path))
-    assert CompileSwitch(None).compiled() is False        # off unless asked for
-    monkeypatch.setenv("RECGS_NUMBA", "1")
+def test_no_compiler_warm_numba_from_the_first_step(numba_machine, monkeypatch, tmp_path):
+    _no_compiler(monkeypatch, tmp_path)
+    numba_machine.write_text("warm")
     sw = CompileSwitch(None)
-    assert sw.compiled() == "numba" and "numba" in sw.messages[0]
+    assert sw.compiled() == "numba" and sw.proc is None and sw.switched_at is None
+    assert "numba" in sw.messages[0] and sw.summary()["numba"] == "ready"
     assert CompileSwitch(False).compiled() is False      # --eager: the torch oracle, always
+    monkeypatch.setenv("RECGS_NUMBA", "0")
+    assert CompileSwitch(None).compiled() is False       # numba refused
+
+
+def _fake_numba_start(code):
+    """A numba warm-up that runs ``code`` (MARKER bound to the warm marker's path)."""
+    def start(self, cmd, extra_env, nice=True):
+        assert "--numba" in cmd
+        m = compiling.numba_marker()
+        self.proc = subprocess.Popen([sys.executable, "-c", f"MARKER = {str(m)!r}\n{code}"],
+                                     stderr=subprocess.PIPE)
+    return start
+
+
+def test_no_compiler_cold_numba_trains_eager_then_switches(numba_machine, monkeypatch, tmp_path):
+    _no_compiler(monkeypatch, tmp_path)
+    monkeypatch.setattr(CompileSwitch, "_start", _fake_numba_start(
+        "import pathlib, time; time.sleep(0.3); pathlib.Path(MARKER).write_text('ok')"))
+    heard = []
+    sw = CompileSwitch(None, log=heard.append)
+    assert sw.numba == "warming" and sw.compiled() is False    # the first step does not wait
+    sw.note_step(5)
+    sw.proc.wait()
+    assert sw.compiled() == "numba" and sw.switched_at == 5
+    assert any("cold" in m for m in heard) and any("from step 5" in m for m in heard)
+    assert CompileSwitch(None).compiled() == "numba"          # the next run: warm from the start
+
+
+def test_no_compiler_failed_numba_warm_up_stays_eager(numba_machine, monkeypatch, tmp_path):
+    _no_compiler(monkeypatch, tmp_path)
+    monkeypatch.setattr(CompileSwitch, "_start", _fake_numba_start(
+        "import sys; sys.stderr.write('LoweringError: boom\\n'); sys.exit(1)"))
+    sw = CompileSwitch(None)
+    sw.proc.wait()
+    assert sw.compiled() is False and sw.numba == "failed"
+    assert "LoweringError: boom" in sw.summary()["reason"] and not numba_machine.exists()
+
+
+def test_numba_that_fails_to_load_means_eager(numba_machine, monkeypatch, tmp_path):
+    _no_compiler(monkeypatch, tmp_path)
+    numba_machine.write_text("warm")
+    monkeypatch.setattr(compiling, "_numba_ready", lambda: False)
+    sw = CompileSwitch(None)
+    assert sw.compiled() is False and sw.numba == "failed" and "eager" in sw.messages[0]
+
+
+def test_numba_on_request_even_with_a_compiler(numba_machine, monkeypatch):
+    numba_machine.write_text("warm")
+    monkeypatch.setenv("RECGS_NUMBA", "1")
+    monkeypatch.setattr(compiling, "find_compiler", lambda: "/usr/bin/c++")
+    sw = CompileSwitch(None)
+    assert sw.compiled() == "numba" and sw.proc is None       # no torch.compile warm-up
+
+
+def test_numba_first_even_with_a_compiler(numba_machine, monkeypatch):
+    """numba is the default wherever it is installed (the fastest path measured): warm, from
+    the first step with no torch.compile warm-up; cold, eager while its own warm-up runs."""
+    monkeypatch.setattr(compiling, "find_compiler", lambda: "/usr/bin/c++")
+    started = []
+
+    def start(self, cmd, env, nice=True):
+        started.append(cmd)
+        self.proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"], stderr=subprocess.PIPE)
+    monkeypatch.setattr(CompileSwitch, "_start", start)
+    sw = CompileSwitch(None)                                   # cold numba cache
+    assert sw.numba == "warming" and sw.compiled() is False
+    assert started and "--numba" in started[0]                 # numba's warm-up, not inductor's
+    sw.close()
+    numba_machine.write_text("warm")
+    started.clear()
+    sw = CompileSwitch(None)
+    assert sw.compiled() == "numba" and not started
+
+
+def test_torch_compile_when_numba_fails_or_is_refused(numba_machine, monkeypatch):
+    numba_machine.write_text("warm")
+    monkeypatch.setattr(compiling, "find_compiler", lambda: "/usr/bin/c++")
+    monkeypatch.setattr(CompileSwitch, "_start", _fake_start(
+        "import pathlib, time; time.sleep(0.3); p = pathlib.Path(MARKER); "
+        "p.parent.mkdir(parents=True, exist_ok=True); p.write_text('ok')"))
+    monkeypatch.setattr(compiling, "_numba_ready", lambda: False)   # numba's kernels fail to load
+    sw = CompileSwitch(None)
+    assert sw.numba == "failed" and sw.state == "warming" and sw.compiled() is False
+    sw.proc.wait()
+    assert sw.compiled() is True
+    monkeypatch.setattr(compiling, "_numba_ready", lambda: True)
+    monkeypatch.setenv("RECGS_NUMBA", "0")
+    assert CompileSwitch(None).compiled() is True             # refused: torch.compile (warm now)
 
 
 def test_explicit_choices_are_kept(cache):
@@ -60,7 +165,7 @@ def test_warm_key_follows_threads_and_sources(cache):
 
 def _fake_start(code):
     """A warm-up that runs ``code`` (with MARKER bound to the marker path) instead of compiling."""
-    def start(self, max_degree):
+    def start(self, cmd, extra_env, nice=True):
         m = compiling.marker()
         self.proc = subprocess.Popen([sys.executable, "-c", f"MARKER = {str(m)!r}\n{code}"],
                                      stderr=subprocess.PIPE)
@@ -164,3 +269,26 @@ def test_warm_up_borrows_a_core_when_none_is_spare(cache, monkeypatch):
         assert sw.compiled() is True and torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.slow
+def test_real_numba_warm_up_fills_the_user_cache(tmp_path):
+    """The numba warm-up subprocess compiles into RecGS's per-user cache and leaves the marker;
+    a run without a compiler then takes numba's path from its first step, loading (not
+    compiling) the kernels."""
+    import os
+    env = {**os.environ, "RECGS_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
+    env.pop("NUMBA_CACHE_DIR", None)
+    env.pop("RECGS_NUMBA", None)
+    subprocess.run([sys.executable, "-m", "recgs_addon.core.train.compiling", "--numba"], env=env,
+                   check=True, cwd=ROOT)
+    numba_dir = tmp_path / "cache" / "numba"
+    assert list(numba_dir.glob("recgs-warm-*")) and list(numba_dir.rglob("*.nbi"))
+    (tmp_path / "bin").mkdir()
+    probe = ("import json, time\n"
+             "from recgs_addon.core.train.compiling import CompileSwitch\n"
+             "t = time.perf_counter(); sw = CompileSwitch(None)\n"
+             "print(json.dumps({'path': sw.compiled(), 's': time.perf_counter() - t}))\n")
+    out = subprocess.run([sys.executable, "-c", probe], env={**env, "PATH": str(tmp_path / "bin")},
+                         check=True, cwd=ROOT, capture_output=True, text=True).stdout.strip().splitlines()[-1]
+    assert json.loads(out)["path"] == "numba"

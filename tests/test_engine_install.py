@@ -87,13 +87,24 @@ def test_progress_lines():
 
 def test_pip_command(monkeypatch):
     monkeypatch.delenv(ei.PIP_ARGS_ENV, raising=False)
-    cmd = ei.pip_command("/t", platform="linux")
-    assert cmd[-1] == "torch==2.13.0" and cmd[cmd.index("--target") + 1] == "/t"
+    cmd = ei.pip_command("/t", platform="linux", requirements=ei.engine_requirements("1.26.4"))
+    assert cmd[-3:] == ["torch==2.13.0", "numba==0.61.2", "numpy==1.26.4"] and cmd[cmd.index("--target") + 1] == "/t"
     assert cmd[cmd.index("--extra-index-url") + 1] == ei.TORCH_CPU_INDEX
     assert "--extra-index-url" not in ei.pip_command("/t", platform="win32")
     monkeypatch.setenv(ei.PIP_ARGS_ENV, "--index-url http://mirror/simple")
     cmd = ei.pip_command("/t", platform="linux")
     assert "http://mirror/simple" in cmd and ei.TORCH_CPU_INDEX not in cmd
+
+
+def test_engine_requirements_pin_numba_to_blenders_numpy():
+    """numba comes with the numpy of the Python that installs (pip --target puts a copy in the
+    engine, ahead of Blender's on the worker's path: the same version is harmless); without a
+    numpy in numba's range the engine is torch alone (training on eager torch)."""
+    assert ei.engine_requirements("1.26.4") == ("torch==2.13.0", ei.NUMBA_REQUIREMENT, "numpy==1.26.4")
+    assert ei.engine_requirements("2.2.6")[-1] == "numpy==2.2.6"
+    for v in ("1.23.5", "2.3.0", None, "garbage"):
+        assert ei.engine_requirements(v) == ei.ENGINE_REQUIREMENTS == ("torch==2.13.0",), v
+    assert ei.pip_command("/t")[-1] == ei.engine_requirements()[-1]    # the default: this Python's numpy
 
 
 def test_engine_dir_env(monkeypatch, tmp_path):

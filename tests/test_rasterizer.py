@@ -620,55 +620,210 @@ def _numba_works():
     return rasterizer.numba_kernels_ready()
 
 
-def test_numba_kernels_match_eager():
-    """The numba path (compiled without a C++ compiler) against the eager oracle: images to
-    1e-6, gradients to 1e-5 relative, on a scene dense enough that pixels stop early."""
-    if not _numba_works():
-        pytest.skip("numba is not installed here")
+needs_numba = pytest.mark.skipif(not _numba_works(), reason="numba is not installed here")
+
+
+def assert_numba_matches_eager(scene, dtype=torch.float32, **kw):
+    """The numba path against the eager torch oracle, same float32 inputs: images to 1e-6
+    (relative to their size where above 1), radii exactly, gradients (means2d and every
+    parameter) to 1e-5 relative to the largest, nothing non-finite. Returns the numba run."""
+    a, pa = render_and_backward(scene, dtype, compiled=False, **kw)
+    b, pb = render_and_backward(scene, dtype, compiled="numba", **kw)
+    assert b.stats["path"] == "numba" and b.stats["compiled"] is False
+    assert_finite(b.rgb, b.alpha, b.depth, b.means2d.grad, *[p.grad for p in pb])
+    for key in ("rgb", "alpha", "depth"):
+        x, y = getattr(a, key), getattr(b, key)
+        assert (x - y).abs().max() <= 1e-6 * max(1.0, x.abs().max().item()), key
+    assert torch.equal(a.radii, b.radii)
+    for name, x, y in zip(("means2d",) + PARAM_NAMES, [a.means2d.grad] + [p.grad for p in pa],
+                          [b.means2d.grad] + [p.grad for p in pb]):
+        assert (x - y).abs().max() <= 1e-5 * max(1.0, x.abs().max().item()), name
+    return b, pb
+
+
+def _rounded(scene):
+    return dict(scene, params=[p.astype(np.float32).astype(np.float64) for p in scene["params"]])
+
+
+@needs_numba
+@pytest.mark.parametrize("seed, deg, antialiased", FORWARD_CASES)
+def test_numba_matches_eager(seed, deg, antialiased):
+    """Random scenes (SH 0-3, antialiased or not), and a dense one where pixels stop early."""
+    assert_numba_matches_eager(make_scene(seed, n=80, deg=deg), antialiased=antialiased)
+
+
+@needs_numba
+def test_numba_matches_eager_dense_opaque_stacks():
+    """Near-opaque stacks: the 0.99 clamp and the T_MIN stop fire on most pixels."""
     scene = make_scene(8, n=400, width=64, height=48, logit=(3.0, 2.0))
-    a, pa = render_and_backward(scene, compiled=False)
-    b, pb = render_and_backward(scene, compiled="numba")
-    assert b.stats["compiled"] is False
-    for x, y in zip([a.rgb, a.alpha, a.depth], [b.rgb, b.alpha, b.depth]):
-        assert (x - y).abs().max() < 1e-6
-    for x, y in zip([a.means2d.grad] + [p.grad for p in pa], [b.means2d.grad] + [p.grad for p in pb]):
-        assert (x - y).abs().max() <= 1e-5 * max(1.0, x.abs().max().item())
+    b, _ = assert_numba_matches_eager(scene)
+    assert b.alpha.max() > 0.9999 - 1e-6
 
 
-def test_numba_kernels_stop_and_clamp_like_eager():
-    """Per chunk: the early stop at T_MIN (opaque stacks), the 0.99 clamp, padded slots."""
-    if not _numba_works():
-        pytest.skip("numba is not installed here")
-    from recgs_addon.core.render import numba_kernels
-    fwd, bwd = numba_kernels.load(rasterizer.ALPHA_MIN, rasterizer.ALPHA_MAX, rasterizer.T_MIN)
-    gen = torch.Generator().manual_seed(1)
-    pix = torch.arange(4, dtype=torch.float32) - 1.5
-    pxl, pyl = pix.repeat(4), pix.repeat_interleave(4)
-    tc, g = 30, 40
-    geo = torch.empty(6, tc, g)
-    geo[0:2] = torch.randn(2, tc, g, generator=gen) * 2
-    geo[2] = torch.rand(tc, g, generator=gen) + 0.2
-    geo[3] = torch.randn(tc, g, generator=gen) * 0.3
-    geo[4] = torch.rand(tc, g, generator=gen) + 0.2
-    geo[5] = torch.rand(tc, g, generator=gen) * 1.5     # many above the clamp
-    geo[5, :, -5:] = 0.0                                # padding
-    vals = torch.rand(5, tc, g, generator=gen)
-    o1, g1, t1 = rasterizer._chunk_forward(pxl, pyl, geo, vals)
-    o2, g2, t2 = fwd(pxl, pyl, geo, vals)
-    assert (o1 - o2).abs().max() < 1e-6
-    assert (t2 == 0).any()                              # some pixels did stop early
-    gout = torch.randn(5, tc, 16, generator=gen)
-    d1 = rasterizer._chunk_backward(pxl, pyl, geo, vals, g1, t1, gout)
-    d2 = bwd(pxl, pyl, geo, vals, g2, t2, gout)
-    for x, y in zip(d1, d2):
-        assert (x - y).abs().max() <= 1e-5 * x.abs().max()
+@needs_numba
+@pytest.mark.parametrize("tile_size", [1, 3, 16, 32])
+def test_numba_matches_eager_other_tile_sizes(tile_size):
+    """Tiles of 1, 9, 256 and 1024 pixels (4x4 is the default), image not a multiple."""
+    assert_numba_matches_eager(make_scene(3, n=150, width=37, height=29, logit=(2.0, 2.0)),
+                               tile_size=tile_size)
 
 
-def test_numba_hard_cases_are_finite():
-    if not _numba_works():
-        pytest.skip("numba is not installed here")
+@needs_numba
+def test_numba_matches_eager_on_one_pixel_stack():
+    """5 000 Gaussians on one pixel: the stop after a few, long lists behind it."""
+    n = 5000
+    rng = np.random.default_rng(3)
+    s = single_camera_scene(n, width=4, height=3, deg=0)
+    s["params"][0][:] = np.stack([np.zeros(n), np.zeros(n), rng.uniform(1.0, 50.0, n)], 1)
+    s["params"][1][:] = np.log(0.01 * s["params"][0][:, 2:3])
+    s["params"][3][:] = rng.normal(-1.0, 2.0, n)
+    s["K"][0, 2] = s["K"][1, 2] = 1.5
+    b, _ = assert_numba_matches_eager(_rounded(s))
+    assert b.alpha.max() > 0.999
+
+
+@needs_numba
+def test_numba_matches_eager_tiny_huge_and_needles():
+    s = single_camera_scene(4)
+    s["params"][0][:] = [[0.0, 0.0, 2.0], [0.1, 0.1, 3.0], [0.0, 0.0, 5.0], [0.2, 0, 1.5]]
+    s["params"][1][:] = np.log([[1e-7] * 3, [1e3] * 3, [1e-7, 1e3, 1e-7], [1e3, 1e3, 1e-7]])
+    for aa in (False, True):
+        assert_numba_matches_eager(_rounded(s), antialiased=aa)
+    s = single_camera_scene(6, seed=1)
+    rng = np.random.default_rng(2)
+    s["params"][0][:, 2] = np.linspace(2.0, 4.0, 6)
+    s["params"][0][:, :2] = rng.normal(0, 0.2, (6, 2))
+    s["params"][1][:] = np.log([1.0, 1e-5, 1e-5]) + np.log(rng.uniform(0.1, 1.0, (6, 1)))
+    s["params"][2][:] = rng.normal(size=(6, 4))
+    assert_numba_matches_eager(_rounded(s))
+    assert_numba_matches_eager(make_scene(5, n=60, scale=(0.001, 0.6)))
+
+
+@needs_numba
+def test_numba_matches_eager_with_empty_tiles_and_off_screen():
+    """Gaussians in one corner only (most tiles empty), some far off-screen or behind."""
+    s = single_camera_scene(6)
+    s["params"][0][:] = [[-0.5, -0.4, 1.0], [-0.45, -0.38, 1.2], [1e4, 0, 1.0], [0, -50.0, 1.0],
+                         [30.0, 0, 1.0], [0.0, 0.0, -2.0]]
+    s["params"][1][:] = np.log(0.02)
+    s["params"][1][4] = np.log([40.0, 40.0, 40.0])     # centre off-screen, covers the image
+    assert_numba_matches_eager(_rounded(s))
+    s["params"][1][4] = np.log(0.02)                    # now nothing reaches most tiles
+    b, _ = assert_numba_matches_eager(_rounded(s))
+    assert (b.alpha[-6:, -6:] == 0).all()
+
+
+@needs_numba
+def test_numba_degenerate_inputs():
+    """Zero Gaussians, all culled, a 1x1 image, equal depths, near-zero quaternions."""
+    out, params = render_and_backward(single_camera_scene(0), compiled="numba")
+    assert out.rgb.shape == (18, 24, 3) and (out.alpha == 0).all()
+    assert all(p.grad is not None and p.grad.numel() == 0 for p in params)
+    s = single_camera_scene(3)
+    s["params"][0][:, 2] = -1.0
+    b, pb = assert_numba_matches_eager(s)
+    assert all((p.grad == 0).all() for p in pb)
     s = single_camera_scene(7, width=1, height=1)
     s["params"][0][:, 2] = np.linspace(1.0, 3.0, 7)
-    check_hard(s, compiled="numba")
-    out, _ = render_and_backward(single_camera_scene(0), compiled="numba")
-    assert out.rgb.shape == (18, 24, 3)
+    assert_numba_matches_eager(s)
+    s = single_camera_scene(5, deg=0)
+    s["params"][0][:] = [[0, 0, 2.0]] * 5
+    s["params"][0][:, 0] = [0.0, 0.01, -0.01, 0.02, 0.0]
+    s["params"][3][:] = 0.5
+    assert_numba_matches_eager(s)
+    s = single_camera_scene(4)
+    s["params"][0][:, 2] = [1.0, 2.0, 3.0, 4.0]
+    s["params"][1][:] = np.log([0.3, 0.05, 0.1])
+    s["params"][2][:] = [[1e-10, 2e-10, -1e-10, 0.5e-10], [1e-20, 0, 0, 0], [0, 0, 0, 0],
+                         [0.5, 0.5, 0.5, 0.5]]
+    assert_numba_matches_eager(s)
+
+
+@needs_numba
+def test_numba_is_deterministic_and_float64_stays_eager():
+    scene = make_scene(7, n=300, width=48, height=40, logit=(3.0, 2.0))
+    a, pa = render_and_backward(scene, compiled="numba")
+    b, pb = render_and_backward(scene, compiled="numba")
+    for x, y in zip([a.rgb, a.means2d.grad] + [p.grad for p in pa], [b.rgb, b.means2d.grad] + [p.grad for p in pb]):
+        assert torch.equal(x, y)
+    out, _ = run(scene, torch.float64, compiled="numba")
+    assert out.stats["path"] == "eager"      # numba's kernels are float32
+
+
+def test_numba_missing_means_eager(monkeypatch):
+    """No numba (or numba failing to import): ``compiled="numba"`` renders eagerly, with one
+    warning, and gives the eager numbers."""
+    from recgs_addon.core.render import numba_kernels
+    monkeypatch.setattr(numba_kernels, "_STATE", {"error": ImportError("No module named 'numba'")})
+    monkeypatch.setattr(rasterizer, "_KERNEL_CACHE", dict(rasterizer._KERNEL_CACHE))
+    assert not rasterizer.numba_kernels_ready()
+    scene = make_scene(3, n=50)
+    with pytest.warns(UserWarning, match="numba kernels unavailable"):
+        out, _ = run(scene, compiled="numba")
+    ref, _ = run(scene, compiled=False)
+    assert out.stats["path"] == "eager" and torch.equal(out.rgb, ref.rgb)
+
+
+@needs_numba
+def test_numba_failing_at_run_time_falls_back_to_eager(monkeypatch):
+    """A numba kernel that raises mid-run: this render and every later one take the eager
+    path (with a warning), and give the eager numbers."""
+    from recgs_addon.core.render import numba_kernels
+    monkeypatch.setattr(numba_kernels, "_STATE", dict(numba_kernels._STATE))   # restored after
+    monkeypatch.setattr(rasterizer, "_KERNEL_CACHE", dict(rasterizer._KERNEL_CACHE))
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(rasterizer, "_render_numba", boom)
+    scene = make_scene(3, n=50)
+    ref, _ = run(scene, compiled=False)
+    with pytest.warns(UserWarning, match="numba kernels failed"):
+        out, _ = run(scene, compiled="numba")
+    assert out.stats["path"] == "eager" and torch.equal(out.rgb, ref.rgb)
+    assert not rasterizer.numba_kernels_ready() and "boom" in repr(numba_kernels.error())
+    with pytest.warns(UserWarning, match="numba kernels unavailable"):
+        again, _ = run(scene, compiled="numba")
+    assert again.stats["path"] == "eager"
+
+
+@needs_numba
+@pytest.mark.parametrize("deg, antialiased", [(0, False), (1, True), (2, False), (3, True)])
+def test_numba_projection_gradients_match_float64_autograd(deg, antialiased):
+    """numba's projection + colour kernel (hand-written backward) against torch autograd through
+    projection._project_rows and sh.eval_sh_colour in float64, on the same float32 inputs,
+    with random gradients on every output: each parameter's gradient to 1e-6 of its largest
+    (float32 rounding of the outputs and of the SH basis is all that may differ: ~1e-7)."""
+    from recgs_addon.core.model.sh import eval_sh_colour
+    from recgs_addon.core.render import projection
+
+    # spread 2: a third of the centres lie outside the frustum clamp (1.3 x the half-width)
+    scene = _rounded(make_scene(20 + deg, n=200, deg=3, scale=(0.005, 0.4), logit=(0.0, 3.0), spread=2.0))
+    p32 = torch_params(scene, torch.float32)
+    nk = rasterizer.get_kernels("numba").numba
+    vm = np.asarray(scene["viewmat"], np.float64)
+    K = np.asarray(scene["K"], np.float64)
+    w, h = scene["width"], scene["height"]
+    _, ids, _ = nk.cull(*(p.numpy() for p in p32[:4]), vm, K, w, h, 0.2, antialiased)
+    ids = torch.from_numpy(ids)
+    assert len(ids) > 50
+    rows32 = [p.index_select(0, ids).requires_grad_() for p in p32]
+    campos = projection.camera_centre(torch.from_numpy(vm)).numpy()
+    outs = rasterizer._ProjectNumba.apply(*rows32, (nk, deg, vm, K, campos, w, h, 0.2, antialiased))
+    rows64 = [r.detach().double().requires_grad_() for r in rows32]
+    q = projection._project_rows(*rows64[:4], torch.from_numpy(vm), torch.from_numpy(K), w, h, 0.2,
+                                 antialiased)
+    dirs = rows64[0] - torch.from_numpy(campos)
+    colour = eval_sh_colour(deg, rows64[4], dirs / dirs.norm(dim=1, keepdim=True))
+    ref = [torch.stack([q["u"], q["v"]], 1), torch.stack([q["l11"], q["l21"], q["l22"], q["opacity"]], 1),
+           q["z"], colour]
+    assert ((q["u"] - K[0, 2]).abs() > 1.3 * 0.5 * w).any()     # the frustum clamp is active
+    gen = torch.Generator().manual_seed(deg)
+    weights = [torch.randn(r.shape, generator=gen, dtype=torch.float64) for r in ref]
+    for o, r in zip(outs[:4], ref):
+        assert (o.double() - r).abs().max() <= 1e-6 * max(1.0, r.abs().max().item())
+    sum((o.double() * g).sum() for o, g in zip(outs[:4], weights)).backward()
+    sum((r * g).sum() for r, g in zip(ref, weights)).backward()
+    for name, a, b in zip(PARAM_NAMES, rows32, rows64):
+        err = (a.grad.double() - b.grad).abs().max().item()
+        assert err <= 1e-6 * b.grad.abs().max().item(), (name, err, b.grad.abs().max().item())

@@ -233,6 +233,7 @@ def engine_install(expect):
     assert site is not None and leftovers == ["site-packages"], leftovers
     assert mod("blender.jobs")._engine == site, "jobs do not see the engine"
     assert "torch" not in sys.modules, "Blender's own Python imported torch"
+    assert "numba" not in sys.modules, "Blender's own Python imported numba"
     assert any(t.startswith("RecGS engine:") for t in texts), texts
     size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(site) for f in fs)
     return f"{inst.message}, {size / 2**20:.0f} MiB; progress phases {' > '.join(phases)}"
@@ -248,6 +249,7 @@ def worker_python(python):
     assert eng.engine_ready(), "the chosen Python is not taken as the engine"
     assert not jobs.missing_modules(["torch"]), f"{python} has no torch (asked through the add-on)"
     assert "torch" not in sys.modules, "Blender's own Python imported torch"
+    assert "numba" not in sys.modules, "Blender's own Python imported numba"
     assert jobs.command("train")[0] == python, jobs.command("train")
     path = jobs.job_env()["PYTHONPATH"].split(os.pathsep)
     profile = os.environ.get("BLENDER_USER_RESOURCES", "")
@@ -276,6 +278,7 @@ def train(steps):
     assert os.path.isfile(os.path.join(s.out_dir, "point_cloud.ply"))
     obj = bpy.data.objects[obj.name]
     assert "torch" not in sys.modules, "Blender's own Python imported torch"
+    assert "numba" not in sys.modules, "Blender's own Python imported numba"
     return f"{steps} steps, progress at iterations {seen}, {len(obj.data.vertices)} Gaussians; {s.message}"
 
 
@@ -298,6 +301,7 @@ def train_cancel():
     assert s.status == "CANCELLED", f"{s.status}: {s.message}"
     assert os.path.isfile(os.path.join(s.out_dir, "checkpoint.pt")), "no checkpoint after cancel"
     assert "torch" not in sys.modules, "Blender's own Python imported torch"
+    assert "numba" not in sys.modules, "Blender's own Python imported numba"
     return f"cancelled after iteration {cancelled_at}, stopped at {s.iteration}: {s.message}"
 
 

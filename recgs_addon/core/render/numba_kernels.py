@@ -1,182 +1,254 @@
-"""The per-pair compositing kernels in numba: compiled without a C++ compiler.
+"""The rasterizer in numba: a fast path that needs no C++ compiler.
 
-numba ships LLVM inside its wheels (Linux, Windows, macOS; x64 and arm64), so these loops
+numba ships LLVM inside its wheels (Linux, Windows, macOS; x64 and arm64), so these kernels
 compile on an artist's machine that has no C++ compiler, where ``torch.compile`` cannot run.
-Same signatures and layout as :func:`..rasterizer._chunk_forward` / ``_chunk_backward``
-(the eager torch oracle the tests compare them with):
+The kernels are in :mod:`._numba_impl`; this module loads them (or says why it cannot) and
+wraps them for :func:`..rasterizer._render_numba`, which runs a whole view through them:
 
-    forward(pxl (P,), pyl (P,), geo (6, Tc, G), vals (C, Tc, G))
-        -> out (C, Tc, P), g (Tc, G, P), t_excl (Tc, G, P)
-    backward(pxl, pyl, geo, vals, g, t_excl, g_out (C, Tc, P))
-        -> d_geo (6, Tc, G), d_vals (C, Tc, G)
+* ``cull``: per Gaussian, no gradient: camera transform, EWA covariance, opacity-aware
+  radius, screen box (the twin of projection.py's candidate test and ``_cull_rows``); then the
+  visible ones in depth order;
+* ``bin``: each visible Gaussian's tiles, exact per tile row, as one counting sort by tile
+  (stable: depth order inside a tile), no padding;
+* ``project_forward`` / ``project_backward``: the differentiable projection and SH colour of
+  the visible rows, with the chain rule written out (float64);
+* ``forward`` / ``backward``: compositing, one pass over every tile; no per-pair state kept
+  (the backward replays each pixel's pass up to where the forward stopped it).
 
-One loop per pixel, front to back, stopping where the transmittance would fall below
-``T_MIN`` (the eager kernels evaluate every slot and mask). Past that stop ``g`` and
-``t_excl`` are 0, which the backward reads as "not composited", as the eager mask does, so
-outputs and gradients are the eager ones up to float32 summation order. Tiles run in
-parallel (``prange``): each owns its rows of the outputs, so there are no write races.
+Against the eager torch oracle (tests/test_rasterizer.py) the results differ by float32
+summation order and by ``exp`` (both within 1 ulp).
 
-The machine code is cached (``NUMBA_CACHE_DIR``; the trainer points it at RecGS's per-user
-cache folder); the first use on a machine compiles for a few seconds.
+Threads: the kernels are serial over a range of items and release the GIL; this module
+splits each call into ranges and runs them on as many threads as torch uses (its own pool of
+plain threads, which sleep between calls: no second OpenMP pool spinning beside torch's).
+
+The machine code is cached in ``NUMBA_CACHE_DIR`` (the trainer points it at RecGS's per-user
+cache folder); compiling it cold takes ~15 s of one core, once per machine and version.
 """
 from __future__ import annotations
 
-import math
-from typing import Optional
+import itertools
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Optional
 
 import numpy as np
 import torch
 
-_KERNELS: Optional[tuple] = None
-_ERROR: Optional[BaseException] = None
+_STATE: dict = {}
+_POOL: dict = {}
+_LOCK = threading.Lock()
 
 
-def _build(alpha_min: float, alpha_max: float, t_min: float):
-    import numba
-    from numba import prange
-
-    @numba.njit(parallel=True, cache=True, fastmath=False)
-    def forward(pxl, pyl, geo, vals, out, g, t_excl):
-        n_c, n_t, n_g = vals.shape
-        n_p = pxl.shape[0]
-        for t in prange(n_t):
-            for p in range(n_p):
-                T = np.float32(1.0)
-                for c in range(n_c):
-                    out[c, t, p] = 0.0
-                stopped = False
-                for i in range(n_g):
-                    if stopped:
-                        g[t, i, p] = 0.0
-                        t_excl[t, i, p] = 0.0
-                        continue
-                    dx = pxl[p] - geo[0, t, i]
-                    dy = pyl[p] - geo[1, t, i]
-                    p1 = geo[2, t, i] * dx + geo[3, t, i] * dy
-                    p2 = geo[4, t, i] * dy
-                    gg = math.exp(np.float32(-0.5) * (p1 * p1 + p2 * p2))
-                    g[t, i, p] = gg
-                    t_excl[t, i, p] = T
-                    alpha = min(geo[5, t, i] * gg, alpha_max)
-                    if alpha >= alpha_min:
-                        t_next = T * (np.float32(1.0) - alpha)
-                        if t_next < t_min:
-                            stopped = True
-                            continue
-                        w = alpha * T
-                        for c in range(n_c):
-                            out[c, t, p] += w * vals[c, t, i]
-                        T = t_next
-
-    @numba.njit(parallel=True, cache=True, fastmath=False)
-    def backward(pxl, pyl, geo, vals, g, t_excl, g_out, d_geo, d_vals):
-        n_c, n_t, n_g = vals.shape
-        n_p = pxl.shape[0]
-        for t in prange(n_t):
-            for p in range(n_p):
-                # sum over composited slots of w_i <g_out, v_i>, for the "behind" sums
-                total = np.float32(0.0)
-                for i in range(n_g):
-                    T = t_excl[t, i, p]
-                    if T == 0.0:
-                        break
-                    alpha = min(geo[5, t, i] * g[t, i, p], alpha_max)
-                    if alpha >= alpha_min and T * (np.float32(1.0) - alpha) >= t_min:
-                        gv = np.float32(0.0)
-                        for c in range(n_c):
-                            gv += vals[c, t, i] * g_out[c, t, p]
-                        total += alpha * T * gv
-                done = np.float32(0.0)
-                for i in range(n_g):
-                    T = t_excl[t, i, p]
-                    if T == 0.0:
-                        break
-                    gg = g[t, i, p]
-                    oa = geo[5, t, i] * gg
-                    alpha = min(oa, alpha_max)
-                    om = np.float32(1.0) - alpha
-                    if not (alpha >= alpha_min and T * om >= t_min):
-                        continue
-                    gv = np.float32(0.0)
-                    for c in range(n_c):
-                        gv += vals[c, t, i] * g_out[c, t, p]
-                    w = alpha * T
-                    done += w * gv
-                    behind = total - done
-                    for c in range(n_c):
-                        d_vals[c, t, i] += w * g_out[c, t, p]
-                    if oa > alpha_max:        # the clamp: no gradient to opacity or falloff
-                        continue
-                    d_oa = gv * T - behind / om
-                    dx = pxl[p] - geo[0, t, i]
-                    dy = pyl[p] - geo[1, t, i]
-                    p1 = geo[2, t, i] * dx + geo[3, t, i] * dy
-                    p2 = geo[4, t, i] * dy
-                    d_q = np.float32(-0.5) * oa * d_oa
-                    e1 = d_q * p1
-                    e2 = d_q * p2
-                    d_geo[0, t, i] += np.float32(-2.0) * geo[2, t, i] * e1
-                    d_geo[1, t, i] += np.float32(-2.0) * (geo[3, t, i] * e1 + geo[4, t, i] * e2)
-                    d_geo[2, t, i] += np.float32(2.0) * e1 * dx
-                    d_geo[3, t, i] += np.float32(2.0) * e1 * dy
-                    d_geo[4, t, i] += np.float32(2.0) * e2 * dy
-                    d_geo[5, t, i] += gg * d_oa
-
-    return forward, backward
+def _pool(workers: int) -> ThreadPoolExecutor:
+    with _LOCK:
+        if _POOL.get("size", 0) < workers:
+            if "pool" in _POOL:
+                _POOL["pool"].shutdown(wait=False)
+            _POOL["pool"] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="recgs-numba")
+            _POOL["size"] = workers
+        return _POOL["pool"]
 
 
-def _np(x: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray(x.detach().numpy(), dtype=np.float32)
+def run_ranges(fn: Callable[[int, int], None], bounds) -> None:
+    """Call ``fn(lo, hi)`` for consecutive (lo, hi) pairs of ``bounds`` (a list of cut points),
+    on torch's thread count: the calling thread and workers pull ranges in order until none is
+    left (so uneven ranges balance out). The calls touch disjoint outputs."""
+    bounds = list(bounds)
+    jobs = [(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
+    threads = min(max(1, torch.get_num_threads()), len(jobs))
+    if threads <= 1:
+        for lo, hi in jobs:
+            fn(lo, hi)
+        return
+    nxt = itertools.count()
+
+    def work():
+        while True:
+            i = next(nxt)
+            if i >= len(jobs):
+                return
+            fn(*jobs[i])
+
+    futures = [_pool(threads - 1).submit(work) for _ in range(threads - 1)]
+    work()
+    for f in futures:
+        f.result()
 
 
-def load(alpha_min: float, alpha_max: float, t_min: float):
-    """(forward, backward) taking and returning torch tensors, or None if numba is missing
-    or fails to compile here (the reason: :func:`error`). The constants are the
-    rasterizer's (passed in: this module does not import it)."""
-    global _KERNELS, _ERROR
-    if _KERNELS is not None or _ERROR is not None:
-        return _KERNELS
+def _cuts(n: int, parts: int) -> list:
+    return [n * k // parts for k in range(parts + 1)]
+
+
+def _parts(n_items: int) -> int:
+    """Ranges per call: a few per thread (load balance), none tiny."""
+    return max(1, min(4 * max(1, torch.get_num_threads()), n_items // 256))
+
+
+class NumbaKernels:
+    """The loaded kernels, with numpy-side wrappers (float32 inputs)."""
+
+    def __init__(self, impl, amin: float, amax: float, t_min: float) -> None:
+        from . import projection as pj
+        from ..model import gaussians as gs
+        self.impl = impl
+        self.consts = (np.float32(amin), np.float32(amax), np.float32(t_min))
+        # what _numba_impl's per-Gaussian kernels read from ``cst`` (near is set per call)
+        self.proj_consts = np.array([0.0, pj.COV2D_DILATION, pj.FRUSTUM_CLAMP, pj.ALPHA_MIN,
+                                     pj.QUAT_EPS ** 2, pj.AA_RATIO_EPS, pj.BIN_MARGIN_REL,
+                                     pj.BIN_MARGIN_ABS, pj.MAX_RADIUS], np.float64)
+        self.shc = np.array([gs.SH_C0, gs.SH_C1, *gs.SH_C2, *gs.SH_C3], np.float64)
+
+    def _cst(self, near: float):
+        c = self.proj_consts.copy()
+        c[0] = near
+        return c
+
+    @staticmethod
+    def _tile_cuts(tile_start) -> list:
+        """Tile ranges with about equal numbers of intersections (the work)."""
+        n_tiles = tile_start.shape[0] - 1
+        parts = _parts(n_tiles)
+        targets = np.linspace(0, tile_start[-1], parts + 1)[1:-1]
+        cuts = np.searchsorted(tile_start[:-1], targets, side="left")
+        return [0, *np.unique(cuts).tolist(), n_tiles] if n_tiles else [0, 0]
+
+    # ---- compositing -----------------------------------------------------------------
+
+    def forward(self, tile_start, rows, pos, geo, vals, tile_size: int, tiles_x: int, tiles_y: int):
+        """-> out (C, Hp, Wp) accumulated values, last (Hp, Wp) int32: list entries each
+        pixel went through before it stopped."""
+        n_c = vals.shape[1]
+        hp, wp = tiles_y * tile_size, tiles_x * tile_size
+        out = np.empty((n_c, hp, wp), np.float32)
+        last = np.empty((hp, wp), np.int32)
+        run_ranges(lambda lo, hi: self.impl.composite_forward(
+            lo, hi, tile_start, rows, pos, geo, vals, tile_size, tiles_x, *self.consts, out, last),
+            self._tile_cuts(tile_start))
+        return out, last
+
+    def backward(self, tile_start, rows, pos, geo, vals, tile_size: int, tiles_x: int, out, last,
+                 g_out):
+        """-> d_rows (6 + C, V): per visible Gaussian, gradients wrt centre x, y, l11, l21, l22,
+        opacity and the C = 5 values, from ``g_out`` (C, Hp, Wp)."""
+        if vals.shape[1] != 5:
+            raise ValueError("the numba backward takes 5 values a Gaussian (rgb, depth, 1)")
+        n_f = 6 + vals.shape[1]
+        d_isect = np.empty((n_f, rows.shape[0]), np.float32)
+        run_ranges(lambda lo, hi: self.impl.composite_backward(
+            lo, hi, tile_start, rows, pos, geo, vals, tile_size, tiles_x, *self.consts, out, last,
+            g_out, d_isect), self._tile_cuts(tile_start))
+        d_rows = np.zeros((n_f, geo.shape[0]), np.float32)
+        run_ranges(lambda lo, hi: self.impl.gather_rows(lo, hi, rows, d_isect, d_rows), range(n_f + 1))
+        return d_rows
+
+    # ---- per Gaussian: culling, projection and colour; binning -------------------------
+
+    def cull(self, means, log_scales, quats, logits, vm, K, width: int, height: int, near: float,
+             antialiased: bool):
+        """-> info (N, 14) float64 (see _numba_impl.cull), ids (V,) int64 of the drawn
+        Gaussians in depth order (ties by index), radii (N,) int32 (0 = culled)."""
+        n = means.shape[0]
+        info = np.empty((n, 14))
+        cst = self._cst(near)
+        run_ranges(lambda lo, hi: self.impl.cull(lo, hi, means, log_scales, quats, logits, vm, K,
+                                                 width, height, antialiased, cst, info),
+                   _cuts(n, _parts(n)))
+        ids = self.impl.visible_in_depth_order(info)
+        radii = np.where(info[:, 0] > 0, np.ceil(info[:, 13]), 0.0).astype(np.int32)
+        return info, ids, radii
+
+    def bin(self, info, ids, tile_size: int, tiles_x: int, n_tiles: int):
+        """-> tile_start (n_tiles + 1,) int64, rows (M,) int32 (positions in ``ids``), sorted
+        by tile, in depth order inside a tile (whatever the number of threads)."""
+        n = ids.shape[0]
+        parts = max(1, min(max(1, torch.get_num_threads()), n // 1024))
+        cuts = _cuts(n, parts)
+        counts = np.zeros((parts, n_tiles), np.int64)
+        run_ranges(lambda lo, hi: self.impl.bin_count(cuts[lo], cuts[hi], info, ids, tile_size,
+                                                      tiles_x, counts[lo]), range(parts + 1))
+        tile_start = np.empty(n_tiles + 1, np.int64)
+        self.impl.bin_offsets(counts, tile_start)
+        rows = np.empty(tile_start[-1], np.int32)
+        run_ranges(lambda lo, hi: self.impl.bin_fill(cuts[lo], cuts[hi], info, ids, tile_size,
+                                                     tiles_x, counts[lo], rows), range(parts + 1))
+        return tile_start, rows
+
+    def project_forward(self, rows, deg: int, vm, K, campos, width: int, height: int, near: float,
+                        antialiased: bool):
+        """rows = (means (V, 3), log_scales (V, 3), quats (V, 4), logits (V,), sh (V, K, 3)),
+        float32 -> pos (V, 2) float64, geo (V, 4) (l11, l21, l22, opacity), depth (V,),
+        colour (V, 3) float32."""
+        v = rows[0].shape[0]
+        pos = np.empty((v, 2))
+        geo = np.empty((v, 4), np.float32)
+        depth = np.empty(v, np.float32)
+        colour = np.empty((v, 3), np.float32)
+        cst = self._cst(near)
+        run_ranges(lambda lo, hi: self.impl.project_forward(
+            lo, hi, *rows, deg, vm, K, campos, width, height, antialiased, cst, self.shc,
+            pos, geo, depth, colour), _cuts(v, _parts(v)))
+        return pos, geo, depth, colour
+
+    def project_backward(self, rows, deg: int, vm, K, campos, width: int, height: int,
+                         near: float, antialiased: bool, g_pos, g_geo, g_depth, g_colour):
+        """Gradients wrt ``rows`` (float32, same shapes) from those of pos (V, 2), geo,
+        depth and colour."""
+        v = rows[0].shape[0]
+        grads = tuple(np.empty(r.shape, np.float32) for r in rows[:4]) + (np.zeros(rows[4].shape, np.float32),)
+        cst = self._cst(near)
+        run_ranges(lambda lo, hi: self.impl.project_backward(
+            lo, hi, *rows, deg, vm, K, campos, width, height, antialiased, cst, self.shc,
+            g_pos, g_geo, g_depth, g_colour, *grads), _cuts(v, _parts(v)))
+        return grads
+
+
+def _smoke(k: NumbaKernels) -> None:
+    """Compile (or load from the cache) every kernel on a tiny input, with the argument types
+    a render passes."""
+    rng = np.random.default_rng(0)
+    f32 = np.float32
+    v = 3
+    params = (rng.normal(0, 0.3, (v, 3)).astype(f32) + f32([0, 0, 3]), np.full((v, 3), -2.0, f32),
+              rng.normal(size=(v, 4)).astype(f32), np.zeros(v, f32), rng.normal(0, 0.3, (v, 16, 3)).astype(f32))
+    vm = np.eye(4)
+    K = np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]])
+    info, ids, _ = k.cull(*params[:4], vm, K, 8, 8, 0.2, False)
+    tile_start, rows = k.bin(info, ids, 4, 2, 4)
+    pos, geo, depth, colour = k.project_forward(params, 3, vm, K, np.zeros(3), 8, 8, 0.2, True)
+    k.project_backward(params, 3, vm, K, np.zeros(3), 8, 8, 0.2, True, pos.astype(f32), geo, depth, colour)
+    vals = np.concatenate([colour, depth[:, None], np.ones((v, 1), f32)], 1)
+    out, last = k.forward(tile_start, rows, pos, geo, vals, 4, 2, 2)
+    k.backward(tile_start, rows, pos, geo, vals, 4, 2, out, last, np.ones_like(out))
+
+
+def load(alpha_min: float, alpha_max: float, t_min: float) -> Optional[NumbaKernels]:
+    """The kernels, or None if numba is missing or fails here (the reason: :func:`error`).
+    The constants are the rasterizer's (passed in: this module does not import it). The first
+    call compiles or loads from the cache (``NUMBA_CACHE_DIR``, read now, not only when numba
+    was imported)."""
+    if "kernels" in _STATE or "error" in _STATE:
+        return _STATE.get("kernels")
     try:
-        fwd_nb, bwd_nb = _build(np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min))
+        import numba
+        if os.environ.get("NUMBA_CACHE_DIR"):
+            numba.config.CACHE_DIR = os.environ["NUMBA_CACHE_DIR"]
+        from . import _numba_impl
+        k = NumbaKernels(_numba_impl, alpha_min, alpha_max, t_min)
+        _smoke(k)
     except Exception as exc:  # ImportError (no numba), an unsupported platform, ...
-        _ERROR = exc
+        _STATE["error"] = exc
         return None
-
-    import numba
-
-    def threads() -> None:   # as many as torch uses (fewer while a compile warm-up borrows one)
-        numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
-
-    def forward(pxl, pyl, geo, vals, fused=False):
-        threads()
-        c, tc, n = vals.shape
-        p = pxl.shape[0]
-        out = np.empty((c, tc, p), np.float32)
-        g = np.empty((tc, n, p), np.float32)
-        t_excl = np.empty((tc, n, p), np.float32)
-        fwd_nb(_np(pxl), _np(pyl), _np(geo), _np(vals), out, g, t_excl)
-        return torch.from_numpy(out), torch.from_numpy(g), torch.from_numpy(t_excl)
-
-    def backward(pxl, pyl, geo, vals, g, t_excl, g_out, fused=False):
-        threads()
-        d_geo = np.zeros(tuple(geo.shape), np.float32)
-        d_vals = np.zeros(tuple(vals.shape), np.float32)
-        bwd_nb(_np(pxl), _np(pyl), _np(geo), _np(vals), _np(g), _np(t_excl), _np(g_out), d_geo, d_vals)
-        return torch.from_numpy(d_geo), torch.from_numpy(d_vals)
-
-    try:   # compile now (a few seconds the first time on a machine, then from the cache)
-        gen = torch.Generator().manual_seed(0)
-        pix = torch.arange(4, dtype=torch.float32) - 1.5
-        geo = torch.rand(6, 2, 3, generator=gen)
-        vals = torch.rand(2, 2, 3, generator=gen)
-        out, g, te = forward(pix, pix, geo, vals)
-        backward(pix, pix, geo, vals, g, te, torch.ones_like(out))
-    except Exception as exc:
-        _ERROR = exc
-        return None
-    _KERNELS = (forward, backward)
-    return _KERNELS
+    _STATE["kernels"] = k
+    return k
 
 
 def error() -> Optional[BaseException]:
-    return _ERROR
+    return _STATE.get("error")
+
+
+def disable(exc: BaseException) -> None:
+    """Kernels that failed at run time: :func:`load` returns None from now on (eager torch)."""
+    _STATE.clear()
+    _STATE["error"] = exc

@@ -32,6 +32,7 @@ import warnings
 from dataclasses import dataclass, field
 from typing import NamedTuple, Optional
 
+import numpy as np
 import torch
 
 from .projection import ALPHA_MIN, _index_rows, allow_variants, camera_centre, project_gaussians
@@ -178,6 +179,9 @@ class _Kernels(NamedTuple):
     forward: object
     backward: object
     compiled: bool
+    #: numba's whole-view kernels (:class:`.numba_kernels.NumbaKernels`): they replace the
+    #: per-chunk ones above for float32 renders (float64 ones take the eager kernels)
+    numba: object = None
 
 
 _KERNEL_CACHE: dict = {}
@@ -248,7 +252,7 @@ def get_kernels(compiled: Optional[bool]) -> _Kernels:
                 warnings.warn(f"numba kernels unavailable ({numba_kernels.error()!r}); using the eager rasterizer")
                 _KERNEL_CACHE["warned_numba"] = True
             return _Kernels(_chunk_forward, _chunk_backward, False)
-        return _Kernels(nk[0], nk[1], False)
+        return _Kernels(_chunk_forward, _chunk_backward, False, numba=nk)
     if "compiled" not in _KERNEL_CACHE:
         try:
             kern = _compiled_kernels()
@@ -312,6 +316,10 @@ class _Plan:
     slot_rows: Optional[torch.Tensor] = None     # (S,) int64
     slot_tiles: Optional[torch.Tensor] = None    # (S,) int64 tile of each slot
     pairs: int = 0
+    #: numba's path (no chunks, no padding): the intersections in (tile, depth) order, as the
+    #: visible row of each (M,) int32, and each tile's offset into them (n_tiles + 1,) int64
+    isect_rows: Optional[torch.Tensor] = None
+    tile_start: Optional[torch.Tensor] = None
 
 
 def _expand(counts: torch.Tensor):
@@ -536,6 +544,121 @@ class _Composite(torch.autograd.Function):
                 None, None, None, None, None)
 
 
+class _ProjectNumba(torch.autograd.Function):
+    """Projection and colour of the visible Gaussians through numba's kernels (float32 rows,
+    float64 maths, hand-written backward): the twin of projection._project_rows plus the SH
+    colour. Inputs: the visible rows of means, log_scales, quats, logit_opacities, sh
+    (V, K, 3), and ``setup`` = (kernels, SH degree, viewmat (4, 4) float64, K float64, camera
+    centre, width, height, near, antialiased). Outputs: means2d (V, 2) float32, geo (V, 4)
+    (l11, l21, l22, opacity), depth (V,), colour (V, 3), and pos (V, 2) float64 (the centres
+    binning and compositing use; no gradient)."""
+
+    @staticmethod
+    def forward(ctx, means, log_scales, quats, logits, sh, setup):
+        rows = tuple(x.detach().contiguous().numpy() for x in (means, log_scales, quats, logits, sh))
+        nk, deg, *view = setup
+        pos, geo, depth, colour = nk.project_forward(rows, deg, *view)
+        ctx.rows, ctx.setup = rows, setup
+        pos = torch.from_numpy(pos)
+        ctx.mark_non_differentiable(pos)
+        return (pos.to(torch.float32), torch.from_numpy(geo), torch.from_numpy(depth),
+                torch.from_numpy(colour), pos)
+
+    @staticmethod
+    def backward(ctx, g_m2d, g_geo, g_depth, g_colour, _g_pos):
+        nk, deg, *view = ctx.setup
+        v = ctx.rows[0].shape[0]
+
+        def arr(g, shape):
+            if g is None:
+                return np.zeros(shape, np.float32)
+            return g.detach().to(torch.float32).contiguous().numpy()
+
+        grads = nk.project_backward(ctx.rows, deg, *view, arr(g_m2d, (v, 2)), arr(g_geo, (v, 4)),
+                                    arr(g_depth, (v,)), arr(g_colour, (v, 3)))
+        ctx.rows = None
+        return tuple(torch.from_numpy(g) for g in grads) + (None,)
+
+
+class _CompositeNumba(torch.autograd.Function):
+    """:class:`_Composite` through numba's kernels (float32): one kernel call over every tile
+    forward, one backward, nothing kept per pair (the backward replays each pixel's pass up to
+    where the forward stopped it: ``last``). Inputs: means2d_full (N, 2) [gradient only],
+    geo (V, 4) (l11, l21, l22, opacity), values (V, C), pos64 (V, 2) float64 detached centres,
+    ids (V,), plan (unchunked), kernels. Output: (H, W, C) accumulated values."""
+
+    @staticmethod
+    def forward(ctx, means2d_full, geo, values, pos64, ids, plan, nk):
+        ts = plan.tile_size
+        geo_np = geo.detach().contiguous().numpy()
+        vals = values.detach().contiguous().numpy()
+        pos = pos64.detach().contiguous().numpy()
+        tile_start, rows = plan.tile_start.numpy(), plan.isect_rows.numpy()
+        out, last = nk.forward(tile_start, rows, pos, geo_np, vals, ts, plan.tiles_x, plan.tiles_y)
+        ctx.arrays = (tile_start, rows, pos, geo_np, vals, out, last)
+        ctx.plan = plan
+        ctx.nk = nk
+        ctx.n = means2d_full.shape[0]
+        ctx.save_for_backward(ids)
+        img = torch.from_numpy(out)[:, :plan.height, :plan.width].permute(1, 2, 0)
+        return img.contiguous()
+
+    @staticmethod
+    def backward(ctx, g_img):
+        (ids,) = ctx.saved_tensors
+        tile_start, rows, pos, geo, vals, out, last = ctx.arrays
+        plan = ctx.plan
+        ts = plan.tile_size
+        g_out = np.zeros(out.shape, np.float32)
+        g_out[:, :plan.height, :plan.width] = g_img.detach().permute(2, 0, 1).numpy()
+        d = torch.from_numpy(ctx.nk.backward(tile_start, rows, pos, geo, vals, ts, plan.tiles_x,
+                                             out, last, g_out))
+        ctx.arrays = None
+        d_means2d = torch.zeros(ctx.n, 2, dtype=torch.float32)
+        d_means2d.index_copy_(0, ids, d[0:2].t())
+        return d_means2d, d[2:_N_GEOM].t(), d[_N_GEOM:].t(), None, None, None, None
+
+
+def _render_numba(nk, means, log_scales, quats, logit_opacities, blocks, viewmat, K, width: int,
+                  height: int, sh_degree: int, background, antialiased: bool, near: float,
+                  tile_size: int, gather) -> RenderOutput:
+    """:func:`render` with every per-Gaussian and per-pair step in numba (float32 inputs):
+    culling, depth order and binning without autograd, then two differentiable kernels,
+    projection + colour and compositing. Same outputs as the eager path to float32 rounding
+    (tests/test_rasterizer.py)."""
+    n = means.shape[0]
+    f64 = torch.float64
+    vm = np.ascontiguousarray(viewmat.detach().to(f64).numpy())
+    Kd = np.ascontiguousarray(K.detach().to(f64).numpy())
+    params = (means, log_scales, quats, logit_opacities)
+    info, ids_np, radii = nk.cull(*(x.detach().contiguous().numpy() for x in params), vm, Kd,
+                                  width, height, near, antialiased)
+    ids = torch.from_numpy(ids_np)
+    ts = tile_size
+    plan = _Plan(width, height, ts, -(-width // ts), -(-height // ts), int(ids.shape[0]))
+    tile_start, rows = nk.bin(info, ids_np, ts, plan.tiles_x, plan.tiles_x * plan.tiles_y)
+    plan.tile_start, plan.isect_rows = torch.from_numpy(tile_start), torch.from_numpy(rows)
+    plan.intersections = int(rows.shape[0])
+    plan.pairs = plan.intersections * ts * ts
+
+    sh_vis = torch.cat([gather(b, ids) for b in blocks if b.shape[1]], 1).to(torch.float32)
+    campos = camera_centre(torch.from_numpy(vm)).numpy()
+    setup = (nk, sh_degree, vm, Kd, campos, width, height, near, antialiased)
+    m2d, geo, depth, colour, pos64 = _ProjectNumba.apply(
+        *(gather(x, ids) for x in params), sh_vis, setup)
+    values = torch.cat([colour, depth.unsqueeze(1), torch.ones(ids.shape[0], 1)], dim=1)
+    means2d = torch.zeros(n, 2).index_copy(0, ids, m2d)
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    acc = _CompositeNumba.apply(means2d, geo, values, pos64, ids, plan, nk)
+    alpha = acc[..., 4]
+    rgb = acc[..., 0:3] + (1.0 - alpha).unsqueeze(-1) * background
+    stats = dict(visible=int(ids.shape[0]), intersections=plan.intersections, pairs=plan.pairs,
+                 chunks=0, compiled=False, path="numba")
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=acc[..., 3], means2d=means2d,
+                        radii=torch.from_numpy(radii), stats=stats)
+
+
 # ----------------------------------------------------------------------------------------
 # Public entry point
 # ----------------------------------------------------------------------------------------
@@ -596,6 +719,19 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
 
     if gather is None:
         gather = _index_rows
+    if kern.numba is not None and all(x.dtype == torch.float32 for x in
+                                      (means, log_scales, quats, logit_opacities)):
+        if not near > 0:
+            raise ValueError(f"near must be > 0, got {near}")
+        try:
+            return _render_numba(kern.numba, means, log_scales, quats, logit_opacities, blocks,
+                                 viewmat, K, width, height, sh_degree, background, antialiased,
+                                 near, tile_size, gather)
+        except Exception as exc:  # noqa: BLE001 - numba failing here: eager from now on
+            from . import numba_kernels
+            numba_kernels.disable(exc)
+            warnings.warn(f"numba kernels failed ({exc!r}); using the eager rasterizer")
+            kern = get_kernels(False)
     proj = project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K,
                              width, height, near=near, antialiased=antialiased,
                              compiled=kern.compiled, gather=gather)
@@ -619,6 +755,7 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
     alpha = acc[..., 4]
     rgb = acc[..., 0:3] + (1.0 - alpha).unsqueeze(-1) * background
     stats = dict(visible=int(ids.shape[0]), intersections=plan.intersections,
-                 pairs=plan.pairs, chunks=len(plan.chunks), compiled=kern.compiled)
+                 pairs=plan.pairs, chunks=len(plan.chunks), compiled=kern.compiled,
+                 path="compiled" if kern.compiled else "eager")
     return RenderOutput(rgb=rgb, alpha=alpha, depth=acc[..., 3], means2d=means2d,
                         radii=proj.radii, stats=stats)

@@ -1,24 +1,34 @@
-"""The compiled rasterizer without waiting for the compiler.
+"""The fast rasterizer paths without waiting for a compiler.
 
-``torch.compile`` makes a training step about twice as fast on the CPU, but a cold cache costs
-one to four minutes of C++ compilation before the first step, and machines without a C++
-compiler (most Windows and macOS ones) cannot use it at all. :class:`CompileSwitch` decides,
+Two paths are faster than eager torch: ``torch.compile`` (needs a C++ compiler at run time,
+which most Windows and macOS machines lack; a cold cache costs one to four minutes of C++
+compilation) and numba's kernels (LLVM ships inside numba's wheels: no compiler needed; a cold
+cache costs ~15 s of one core; core/render/numba_kernels.py). :class:`CompileSwitch` decides,
 step by step, which path the trainer takes:
 
-- no compiler on ``PATH``: the eager path, said once (``state == "unavailable"``);
-- a warm cache (a marker this module writes once a warm-up has compiled every graph a
-  training step and an evaluation use): compiled from the first step (tracing the graphs
-  again costs about ten seconds; the C++ compiler does not run);
-- a cold cache: the eager path at once, while a background process (``python -m
-  recgs_addon.core.train.compiling``, lowered priority) fills the cache with a small
-  synthetic render at every SH degree; when it has finished, the next step switches to the
-  compiled path. If it fails, training stays eager.
+- no compiler on ``PATH``: numba's path where numba is installed (else eager torch, said once,
+  ``state == "unavailable"``). With numba's cache warm (a marker this module writes once a
+  warm-up has compiled every kernel) from the first step; cold, the eager path at once while a
+  background process (``python -m recgs_addon.core.train.compiling --numba``, lowered
+  priority) fills the cache, then numba from the next step (loading the cached kernels takes
+  about a second); if that fails, training stays eager.
+- a compiler: numba's path all the same where numba is installed (it was the fastest path
+  measured, and it never waits minutes for a compiler; :meth:`CompileSwitch._numba_first`).
+  Without numba (or if its kernels fail to load), torch.compile. A warm cache (a marker this
+  module writes once a warm-up has compiled every graph a training step and an evaluation
+  use): compiled from the first step (tracing the graphs again costs about ten seconds; the
+  C++ compiler does not run). A cold cache: the eager path at once, while a background process
+  (``python -m recgs_addon.core.train.compiling``) fills the cache with a small synthetic
+  render at every SH degree; when it has finished, the next step switches to the compiled
+  path. If it fails, training stays on the path it is on.
+- ``RECGS_NUMBA=0``: never numba (torch.compile where a compiler is); ``RECGS_NUMBA=1``: the
+  default, said explicitly.
 
-Both paths give the same numbers to float32 rounding (tests/test_rasterizer.py), so a switch
+All paths give the same numbers to float32 rounding (tests/test_rasterizer.py), so a switch
 mid-run changes nothing but speed.
 
-The inductor cache goes to a per-user folder that survives reboots (:func:`inductor_dir`),
-not torch's default under ``/tmp``.
+Both caches go to a per-user folder that survives reboots (:func:`user_cache_dir`), not
+torch's default under ``/tmp`` or numba's beside the sources.
 """
 from __future__ import annotations
 
@@ -135,10 +145,64 @@ def warm_up(max_degree: int = 3) -> None:
     m.write_text(f"warmed {time.strftime('%Y-%m-%d %H:%M:%S')} torch {torch.__version__}\n")
 
 
+#: Sources whose change invalidates numba's warm marker (what its kernels are made of).
+_NUMBA_SOURCES = ("render/_numba_impl.py", "render/numba_kernels.py")
+
+
+def numba_dir() -> Path:
+    """Where numba's cache goes: per user, beside RecGS's other caches."""
+    return user_cache_dir() / "numba"
+
+
+def use_numba_cache() -> Path:
+    """Point numba's cache at :func:`numba_dir` (before its kernels load), unless the user set
+    ``NUMBA_CACHE_DIR``."""
+    os.environ.setdefault("NUMBA_CACHE_DIR", str(numba_dir()))
+    return Path(os.environ["NUMBA_CACHE_DIR"])
+
+
+def numba_importable() -> bool:
+    import importlib.util
+    return importlib.util.find_spec("numba") is not None
+
+
+def numba_marker() -> Path:
+    """Written once numba's kernels are compiled into the cache: numba and Python versions,
+    machine, CPU (numba compiles for the host CPU) and the kernels' sources."""
+    import numba
+    try:
+        import llvmlite.binding as llvm
+        cpu = llvm.get_host_cpu_name()
+    except Exception:  # noqa: BLE001 - the marker just gets less specific
+        cpu = "?"
+    h = hashlib.sha256(f"{numba.__version__}|{sys.version_info[:2]}|{platform.machine()}|{cpu}".encode())
+    for rel in _NUMBA_SOURCES:
+        h.update((_CORE / rel).read_bytes())
+    return use_numba_cache() / f"recgs-warm-{h.hexdigest()[:16]}"
+
+
+def numba_is_warm() -> bool:
+    try:
+        return numba_marker().exists()
+    except Exception:  # noqa: BLE001 - numba missing or broken: not warm
+        return False
+
+
 def _numba_ready() -> bool:
-    os.environ.setdefault("NUMBA_CACHE_DIR", str(user_cache_dir() / "numba"))
+    """Load numba's kernels here (compiling them if the cache is cold); False if numba fails."""
+    use_numba_cache()
     from ..render.rasterizer import numba_kernels_ready
     return numba_kernels_ready()
+
+
+def warm_up_numba() -> None:
+    """Compile numba's kernels into the cache, then write the warm marker."""
+    if not _numba_ready():
+        from ..render import numba_kernels
+        raise RuntimeError(f"numba kernels unavailable: {numba_kernels.error()!r}")
+    m = numba_marker()
+    m.parent.mkdir(parents=True, exist_ok=True)
+    m.write_text(f"warmed {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
 
 
 def _lower_priority() -> None:  # pragma: no cover - runs in the child
@@ -153,8 +217,11 @@ class CompileSwitch:
 
     ``requested``: True = compiled now (waits for the compiler; raises if it fails), False =
     eager, None = automatic. ``log(message)`` hears each change of state. ``state`` is one of
-    ``eager``, ``unavailable``, ``warming``, ``compiled``; ``switched_at`` is the step
-    (``note_step``) at which the compiled path took over, ``None`` if it never did.
+    ``eager``, ``unavailable``, ``warming``, ``compiled`` (torch.compile); ``numba`` is one of
+    ``None`` (not used), ``warming``, ``ready``, ``failed``. ``switched_at`` is the step
+    (``note_step``) at which a faster path (compiled, or numba after its warm-up) took over,
+    ``None`` if none did. ``stall`` accumulates the seconds spent loading a path mid-run (the
+    trainer keeps them out of the schedule's clock).
     """
 
     def __init__(self, requested: Optional[bool], log: Optional[Callable[[str], None]] = None,
@@ -165,18 +232,20 @@ class CompileSwitch:
         self.proc: Optional[subprocess.Popen] = None
         self.switched_at: Optional[int] = None
         self.reason = ""
+        self.stall = 0.0
+        self.numba: Optional[str] = None
         self._step = 0
         self._threads: Optional[int] = None   # the trainer's thread count, while one is lent out
-        #: numba's kernels stand in while torch.compile cannot (no compiler, cold cache), when
-        #: asked for with RECGS_NUMBA=1: off by default, they lose to eager torch at render
-        #: level here (docs/training.md)
-        self.numba = (requested is None and device == "cpu" and os.environ.get("RECGS_NUMBA") == "1"
-                      and _numba_ready())
+        pref = os.environ.get("RECGS_NUMBA", "").strip()
+        automatic = requested is None and device == "cpu"
+        numba_ok = automatic and pref != "0" and numba_importable()
         if requested is False:
             self.state = "eager"
         elif requested is True or device != "cpu":   # GPUs compile with their own toolchain
             use_user_cache()
             self.state = "compiled"
+        elif numba_ok and (self._numba_first() != "failed" or find_compiler() is None):
+            pass   # numba's path (now, or after its warm-up), or eager if it failed and no compiler
         elif find_compiler() is None:
             self.state, self.reason = "unavailable", "no C++ compiler on PATH"
             self._say(f"torch.compile: no C++ compiler on PATH; training on {self._fallback()}")
@@ -186,20 +255,67 @@ class CompileSwitch:
                 self.state = "compiled"
             else:
                 self.state = "warming"
-                self._start(max_degree)
+                self._start([sys.executable, "-m", "recgs_addon.core.train.compiling", "--max-degree",
+                             str(max_degree), "--threads", str(torch.get_num_threads())],
+                            {"TORCHINDUCTOR_COMPILE_THREADS": "1"})   # one core (not part of the cache key)
                 if self.state == "warming":
                     self._say(f"torch.compile: cache is cold; training starts on {self._fallback()} while it warms up")
                 else:
                     self._say(f"torch.compile: {self.reason}; training on {self._fallback()}")
 
-    def _start(self, max_degree: int) -> None:
-        cmd = [sys.executable, "-m", "recgs_addon.core.train.compiling", "--max-degree", str(max_degree),
-               "--threads", str(torch.get_num_threads())]
+    # --- numba ----------------------------------------------------------------------------
+    def _numba_first(self) -> Optional[str]:
+        """numba wherever it is installed, compiler or not: it needs no C++ compiler, its cold
+        cache costs ~13 s of one core instead of minutes, and it was the fastest path measured
+        (one thread, 320x240: 0.095 s a forward + backward at 50k Gaussians against 0.122 s
+        compiled and 0.290 s eager; 1000 training steps on the sample 27.6 s against 54.8 s
+        compiled; docs/rasterizer.md). Returns ``self.numba``."""
+        self.state = "unavailable"
+        self.reason = "no C++ compiler on PATH" if find_compiler() is None else "numba installed"
+        self._start_numba()
+        return self.numba
+
+    def _start_numba(self) -> None:
+        """numba's path now if its cache is warm, else after a background warm-up."""
+        why = self.reason
+        if numba_is_warm():
+            self._load_numba()
+            if self.numba == "ready":
+                self._say(f"{why}: training on numba's kernels")
+            else:
+                self._say(f"{why}; numba's kernels failed ({self.reason}): training on the eager path")
+            return
+        # not at a lowered priority: ~15 s of one core, which a busy machine would otherwise
+        # starve for minutes (measured: no switch within a 66 s run at load 6 on 2 cores)
+        self._start([sys.executable, "-m", "recgs_addon.core.train.compiling", "--numba"], {}, nice=False)
+        if self.proc is None:
+            self.numba = "failed"
+            self._say(f"{why}; {self.reason}: training on the eager path")
+            return
+        self.numba = "warming"
+        self._say(f"{why}; numba's cache is cold: training starts on the eager path while it warms up")
+
+    def _load_numba(self) -> None:
+        t0 = time.perf_counter()
+        try:
+            ok = _numba_ready()
+        except Exception as exc:  # noqa: BLE001 - any failure: stay on the path we are on
+            ok, self.reason = False, repr(exc)
+        if not ok:
+            from ..render import numba_kernels
+            self.reason = self.reason if not numba_kernels.error() else repr(numba_kernels.error())
+        self.numba = "ready" if ok else "failed"
+        self.stall += time.perf_counter() - t0
+
+    # --- background warm-ups ----------------------------------------------------------------
+    def _start(self, cmd: list, extra_env: dict, nice: bool = True) -> None:
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(
             [str(_CORE.parents[1])] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]),
-            TORCHINDUCTOR_COMPILE_THREADS="1")   # one core (not part of the cache key)
+            **extra_env)
         kw: dict = {}
-        if sys.platform == "win32":
+        if not nice:
+            pass
+        elif sys.platform == "win32":
             kw["creationflags"] = getattr(subprocess, "BELOW_NORMAL_PRIORITY_CLASS", 0)
         else:
             kw["preexec_fn"] = _lower_priority
@@ -217,7 +333,7 @@ class CompileSwitch:
             torch.set_num_threads(threads - 1)
 
     def _fallback(self) -> str:
-        return "numba's kernels" if self.numba else "the eager path"
+        return "numba's kernels" if self.numba == "ready" else "the eager path"
 
     def _say(self, message: str) -> None:
         self.messages.append(message)
@@ -226,28 +342,50 @@ class CompileSwitch:
     def note_step(self, step: int) -> None:
         self._step = step
 
-    def compiled(self):
-        """The rasterizer path for the next render (``render(compiled=...)``): True = through
-        torch.compile; ``"numba"`` = numba's kernels, while torch.compile is unavailable or
-        warming up (where numba is installed; else False = eager torch)."""
-        if self.state == "warming" and self.proc is not None and self.proc.poll() is not None:
-            err = self.proc.stderr.read().decode(errors="replace").strip() if self.proc.stderr else ""
-            if self._threads is not None:   # give the core back (the cache is keyed on it)
-                torch.set_num_threads(self._threads)
-                self._threads = None
-            if self.proc.returncode == 0 and is_warm():
+    def _poll(self) -> None:
+        """A finished warm-up: give the core back, then switch (or say why not)."""
+        if self.proc is None or self.proc.poll() is None:
+            return
+        err = self.proc.stderr.read().decode(errors="replace").strip() if self.proc.stderr else ""
+        failed = f"warm-up failed ({err.splitlines()[-1] if err else self.proc.returncode})"
+        ok = self.proc.returncode == 0
+        self.proc = None
+        if self._threads is not None:   # give the core back (the inductor cache is keyed on it)
+            torch.set_num_threads(self._threads)
+            self._threads = None
+        if self.state == "warming":
+            if ok and is_warm():
                 self.state, self.switched_at = "compiled", self._step
                 self._say(f"torch.compile: cache warm; compiled path from step {self._step}")
             else:
-                self.state = "unavailable"
-                self.reason = f"warm-up failed ({err.splitlines()[-1] if err else self.proc.returncode})"
+                self.state, self.reason = "unavailable", failed
                 self._say(f"torch.compile: {self.reason}; staying on {self._fallback()}")
-            self.proc = None
+        elif self.numba == "warming":
+            if ok and numba_is_warm():
+                self._load_numba()
+            else:
+                self.numba, self.reason = "failed", failed
+            if self.numba == "ready":
+                self.switched_at = self._step
+                self._say(f"numba: cache warm; numba path from step {self._step}")
+            else:
+                self._say(f"numba: {self.reason}; staying on the eager path")
+
+    def compiled(self):
+        """The rasterizer path for the next render (``render(compiled=...)``): True = through
+        torch.compile; ``"numba"`` = numba's kernels, where torch.compile is not (yet) used and
+        they are ready; else False = eager torch."""
+        self._poll()
         if self.state == "compiled":
             return True
-        if self.state in ("unavailable", "warming") and self.numba:
+        if self.state != "eager" and self.numba == "ready":
             return "numba"
         return False
+
+    def take_stall(self) -> float:
+        """Seconds spent loading a path since the last call (and forget them)."""
+        s, self.stall = self.stall, 0.0
+        return s
 
     def close(self) -> None:
         """Stop a warm-up still running (the run is over; the cache keeps what it made)."""
@@ -267,16 +405,20 @@ class CompileSwitch:
 
     def summary(self) -> dict:
         return {"state": self.state, "switched_at": self.switched_at, "reason": self.reason or None,
-                "numba": bool(self.numba)}
+                "numba": self.numba}
 
 
 def main(argv=None) -> int:  # pragma: no cover - exercised through CompileSwitch in tests
     import argparse
 
-    p = argparse.ArgumentParser(description="fill the torch.compile cache for the rasterizer")
+    p = argparse.ArgumentParser(description="fill the torch.compile (or numba) cache for the rasterizer")
     p.add_argument("--max-degree", type=int, default=3)
     p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--numba", action="store_true", help="compile numba's kernels instead")
     a = p.parse_args(argv)
+    if a.numba:
+        warm_up_numba()
+        return 0
     if a.threads:
         torch.set_num_threads(a.threads)
     use_user_cache()

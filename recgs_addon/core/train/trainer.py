@@ -464,6 +464,7 @@ class Trainer:
         ``checkpoint_every_s`` seconds, counted across segments."""
         c = self.cfg
         t_start = time.perf_counter() - self.elapsed
+        self.compiler.take_stall()   # a path loaded before the clock started is not the run's
         if self._last_checkpoint is None:
             self._last_checkpoint = time.perf_counter()
         losses = []
@@ -485,6 +486,7 @@ class Trainer:
             if first_compiled:
                 self.compile_stall += time.perf_counter() - t_step
                 self._stall_measured = True
+            self.compile_stall += self.compiler.take_stall()   # numba's kernels loaded mid-run
             if self.level() != prev_level:
                 self.data.drop_level(prev_level)
             self.elapsed = time.perf_counter() - t_start
