@@ -58,7 +58,8 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
                 plot.line_chart(rd / f"{name}.png", [(f"vs {what}", [x for x, _ in pts], [y for _, y in pts])],
                                 title=f"Held-out PSNR against {label}", xlabel=label, ylabel="dB")
         compile_info = metrics.get("compile") or {}
-        when = (f" The rasterizer took the compiled path from step {compile_info['switched_at']}."
+        fast = "numba's kernels" if compile_info.get("numba") == "ready" else "the compiled path"
+        when = (f" The rasterizer took {fast} from step {compile_info['switched_at']} (eager before)."
                 if compile_info.get("switched_at") is not None else "")
         lines += ["", f"Held-out PSNR (against {what}) against training time and against model size: "
                   f"speed and size next to their error.{when}", "",
