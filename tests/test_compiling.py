@@ -218,7 +218,8 @@ def test_real_warm_up_covers_a_training_run(tmp_path):
     of small graphs of its own)."""
     if compiling.find_compiler() is None:
         pytest.skip("no C++ compiler here")
-    env = {"RECGS_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
+    env = {"RECGS_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT),
+           "RECGS_NUMBA": "0"}   # torch.compile's path (numba is the default where installed)
     import os
     env = {**os.environ, **env}
     subprocess.run([sys.executable, "-m", "recgs_addon.core.train.compiling", "--max-degree", "1",
