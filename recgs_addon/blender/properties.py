@@ -74,8 +74,9 @@ class RecGSSettings(bpy.types.PropertyGroup):
     checkpoint_every: FloatProperty(name="Checkpoint Every", default=10.0, min=0.0, soft_max=600.0,
                                     description="Seconds between checkpoints (and live viewport updates)")
     device: StringProperty(name="Device", default="cpu", description="cpu, cuda or mps (where torch has them)")
-    eager: BoolProperty(name="No Compilation", default=False,
-                        description="Do not use torch.compile (slower steps, no start-up compile)")
+    eager: BoolProperty(name="Plain PyTorch", default=False,
+                        description="Render with plain PyTorch only: neither numba's kernels nor torch.compile "
+                                    "(about 2.5x slower steps; the reference the fast paths are tested against)")
     out_dir: StringProperty(**_PATH, name="Output Folder", subtype="DIR_PATH",
                             description="Where the job writes checkpoint, PLY, metrics and images "
                                         "(empty: recgs_out inside the scene folder)")
