@@ -350,6 +350,16 @@ def to_text(s):
     rec.write_text(str(model(s)))
 
 
+def set_token(f, index, value):
+    """Set token ``index`` of the first data line (not a comment) of the text file ``f``."""
+    lines = f.read_text().splitlines()
+    i = next(k for k, l in enumerate(lines) if l and not l.startswith("#"))
+    t = lines[i].split()
+    t[index] = value
+    lines[i] = " ".join(t)
+    f.write_text("\n".join(lines) + "\n")
+
+
 @case("C01", "import", "work")
 def _(w):
     """intact sample (binary, COLMAP 3.12 rigs/frames)"""
@@ -473,13 +483,7 @@ def _(w):
     """an image naming a missing camera (text)"""
     s = scene_copy("C13")
     to_text(s)
-    f = model(s) / "images.txt"
-    lines = f.read_text().splitlines()
-    i = next(k for k, l in enumerate(lines) if l and not l.startswith("#"))
-    t = lines[i].split()
-    t[8] = "7"
-    lines[i] = " ".join(t)
-    f.write_text("\n".join(lines) + "\n")
+    set_token(model(s) / "images.txt", 8, "7")
     return [str(s)]
 
 
@@ -509,13 +513,7 @@ def _(w):
     """NaN focal lengths (text)"""
     s = scene_copy("C16")
     to_text(s)
-    f = model(s) / "cameras.txt"
-    lines = f.read_text().splitlines()
-    i = next(k for k, l in enumerate(lines) if l and not l.startswith("#"))
-    t = lines[i].split()
-    t[4] = "nan"
-    lines[i] = " ".join(t)
-    f.write_text("\n".join(lines) + "\n")
+    set_token(model(s) / "cameras.txt", 4, "nan")
     return [str(s)]
 
 
@@ -534,13 +532,7 @@ def _(w):
     """a NaN pose (text)"""
     s = scene_copy("C18")
     to_text(s)
-    f = model(s) / "images.txt"
-    lines = f.read_text().splitlines()
-    i = next(k for k, l in enumerate(lines) if l and not l.startswith("#"))
-    t = lines[i].split()
-    t[5] = "nan"
-    lines[i] = " ".join(t)
-    f.write_text("\n".join(lines) + "\n")
+    set_token(model(s) / "images.txt", 5, "nan")
     return [str(s)]
 
 
