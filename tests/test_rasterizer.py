@@ -447,16 +447,20 @@ def test_hard_extreme_logit_opacities():
     assert out.radii[1] == 0 and out.radii[3] == 0
 
 
-def test_hard_20000_gaussians_on_one_pixel():
-    """Transmittance underflows to 0 in the cumulative product; results must stay exact."""
-    n = 20000
+def one_pixel_stack(n):
+    """n Gaussians stacked on the centre pixel of a 4x3 image (depths 1-50, mixed opacities)."""
     rng = np.random.default_rng(3)
     s = single_camera_scene(n, width=4, height=3, deg=0)
     s["params"][0][:] = np.stack([np.zeros(n), np.zeros(n), rng.uniform(1.0, 50.0, n)], 1)
     s["params"][1][:] = np.log(0.01 * s["params"][0][:, 2:3])
     s["params"][3][:] = rng.normal(-1.0, 2.0, n)
     s["K"][0, 2] = s["K"][1, 2] = 1.5
-    out, params = check_hard(s)
+    return s
+
+
+def test_hard_20000_gaussians_on_one_pixel():
+    """Transmittance underflows to 0 in the cumulative product; results must stay exact."""
+    out, params = check_hard(one_pixel_stack(20000))
     assert out.alpha.max() > 0.999
 
 
@@ -671,14 +675,7 @@ def test_numba_matches_eager_other_tile_sizes(tile_size):
 @needs_numba
 def test_numba_matches_eager_on_one_pixel_stack():
     """5 000 Gaussians on one pixel: the stop after a few, long lists behind it."""
-    n = 5000
-    rng = np.random.default_rng(3)
-    s = single_camera_scene(n, width=4, height=3, deg=0)
-    s["params"][0][:] = np.stack([np.zeros(n), np.zeros(n), rng.uniform(1.0, 50.0, n)], 1)
-    s["params"][1][:] = np.log(0.01 * s["params"][0][:, 2:3])
-    s["params"][3][:] = rng.normal(-1.0, 2.0, n)
-    s["K"][0, 2] = s["K"][1, 2] = 1.5
-    b, _ = assert_numba_matches_eager(_rounded(s))
+    b, _ = assert_numba_matches_eager(_rounded(one_pixel_stack(5000)))
     assert b.alpha.max() > 0.999
 
 
