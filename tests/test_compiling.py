@@ -114,20 +114,14 @@ def test_numba_first_even_with_a_compiler(numba_machine, monkeypatch):
     """numba is the default wherever it is installed (the fastest path measured): warm, from
     the first step with no torch.compile warm-up; cold, eager while its own warm-up runs."""
     monkeypatch.setattr(compiling, "find_compiler", lambda: "/usr/bin/c++")
-    started = []
-
-    def start(self, cmd, env, nice=True):
-        started.append(cmd)
-        self.proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"], stderr=subprocess.PIPE)
-    monkeypatch.setattr(CompileSwitch, "_start", start)
+    # the fake asserts that the warm-up started is numba's (--numba), not inductor's
+    monkeypatch.setattr(CompileSwitch, "_start", _fake_numba_start("import time; time.sleep(30)"))
     sw = CompileSwitch(None)                                   # cold numba cache
-    assert sw.numba == "warming" and sw.compiled() is False
-    assert started and "--numba" in started[0]                 # numba's warm-up, not inductor's
+    assert sw.numba == "warming" and sw.compiled() is False and sw.proc is not None
     sw.close()
     numba_machine.write_text("warm")
-    started.clear()
     sw = CompileSwitch(None)
-    assert sw.compiled() == "numba" and not started
+    assert sw.compiled() == "numba" and sw.proc is None        # no warm-up of either kind
 
 
 def test_torch_compile_when_numba_fails_or_is_refused(numba_machine, monkeypatch):
