@@ -13,7 +13,7 @@ step by step, which path the trainer takes:
   priority) fills the cache, then numba from the next step (loading the cached kernels takes
   about a second); if that fails, training stays eager.
 - a compiler: numba's path all the same where numba is installed (it was the fastest path
-  measured, and it never waits minutes for a compiler; :meth:`CompileSwitch._numba_first`).
+  measured, and it never waits minutes for a compiler; :meth:`CompileSwitch._automatic`).
   Without numba (or if its kernels fail to load), torch.compile. A warm cache (a marker this
   module writes once a warm-up has compiled every graph a training step and an evaluation
   use): compiled from the first step (tracing the graphs again costs about ten seconds; the
@@ -236,45 +236,49 @@ class CompileSwitch:
         self.numba: Optional[str] = None
         self._step = 0
         self._threads: Optional[int] = None   # the trainer's thread count, while one is lent out
-        pref = os.environ.get("RECGS_NUMBA", "").strip()
-        automatic = requested is None and device == "cpu"
-        numba_ok = automatic and pref != "0" and numba_importable()
         if requested is False:
             self.state = "eager"
         elif requested is True or device != "cpu":   # GPUs compile with their own toolchain
             use_user_cache()
             self.state = "compiled"
-        elif numba_ok and (self._numba_first() != "failed" or find_compiler() is None):
-            pass   # numba's path (now, or after its warm-up), or eager if it failed and no compiler
-        elif find_compiler() is None:
-            self.state, self.reason = "unavailable", "no C++ compiler on PATH"
-            self._say(f"torch.compile: no C++ compiler on PATH; training on {self._fallback()}")
         else:
-            use_user_cache()
-            if is_warm():
-                self.state = "compiled"
-            else:
-                self.state = "warming"
-                self._start([sys.executable, "-m", "recgs_addon.core.train.compiling", "--max-degree",
-                             str(max_degree), "--threads", str(torch.get_num_threads())],
-                            {"TORCHINDUCTOR_COMPILE_THREADS": "1"})   # one core (not part of the cache key)
-                if self.state == "warming":
-                    self._say(f"torch.compile: cache is cold; training starts on {self._fallback()} while it warms up")
-                else:
-                    self._say(f"torch.compile: {self.reason}; training on {self._fallback()}")
+            self._automatic(max_degree)
 
-    # --- numba ----------------------------------------------------------------------------
-    def _numba_first(self) -> Optional[str]:
-        """numba wherever it is installed, compiler or not: it needs no C++ compiler, its cold
+    def _automatic(self, max_degree: int) -> None:
+        """The path on the CPU when none was asked for.
+
+        numba wherever it is installed, compiler or not: it needs no C++ compiler, its cold
         cache costs ~13 s of one core instead of minutes, and it was the fastest path measured
         (one thread, 320x240: 0.095 s a forward + backward at 50k Gaussians against 0.122 s
         compiled and 0.290 s eager; 1000 training steps on the sample 27.6 s against 54.8 s
-        compiled; docs/rasterizer.md). Returns ``self.numba``."""
-        self.state = "unavailable"
-        self.reason = "no C++ compiler on PATH" if find_compiler() is None else "numba installed"
-        self._start_numba()
-        return self.numba
+        compiled; docs/rasterizer.md). torch.compile where numba is refused or absent, or its
+        kernels fail to load, and a C++ compiler is on PATH; else eager torch.
+        """
+        compiler = find_compiler()
+        if os.environ.get("RECGS_NUMBA", "").strip() != "0" and numba_importable():
+            self.state = "unavailable"
+            self.reason = "numba installed" if compiler else "no C++ compiler on PATH"
+            self._start_numba()
+            if self.numba != "failed" or compiler is None:
+                return   # numba's path (now, or after its warm-up), or eager if it failed
+        if compiler is None:
+            self.state, self.reason = "unavailable", "no C++ compiler on PATH"
+            self._say(f"torch.compile: no C++ compiler on PATH; training on {self._fallback()}")
+            return
+        use_user_cache()
+        if is_warm():
+            self.state = "compiled"
+            return
+        self.state = "warming"
+        self._start([sys.executable, "-m", "recgs_addon.core.train.compiling", "--max-degree",
+                     str(max_degree), "--threads", str(torch.get_num_threads())],
+                    {"TORCHINDUCTOR_COMPILE_THREADS": "1"})   # one core (not part of the cache key)
+        if self.state == "warming":
+            self._say(f"torch.compile: cache is cold; training starts on {self._fallback()} while it warms up")
+        else:
+            self._say(f"torch.compile: {self.reason}; training on {self._fallback()}")
 
+    # --- numba ----------------------------------------------------------------------------
     def _start_numba(self) -> None:
         """numba's path now if its cache is warm, else after a background warm-up."""
         why = self.reason
