@@ -33,6 +33,7 @@ import torch
 
 from ..model.gaussians import SH_C0
 from . import fft_filter
+from .robust import colour_gain
 from .tv import tv_denoise
 
 #: Offset (in [0, 1] intensity) inside the logarithms (as estimate.LOG_EPS).
@@ -77,13 +78,9 @@ def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
 @torch.no_grad()
 def linear_gain(pairs: Iterable) -> torch.Tensor:
     """(3,) per-channel ratio sum(photo) / sum(render) in *linear* light over ``pairs`` of
-    (photo, render) sRGB images: caustics scale linear light, so their mean is 1 there."""
-    num = torch.zeros(3, dtype=torch.float64)
-    den = torch.zeros(3, dtype=torch.float64)
-    for photo, render in pairs:
-        num += srgb_to_linear(photo).double().sum(dim=(0, 1)).cpu()
-        den += srgb_to_linear(render).double().sum(dim=(0, 1)).cpu()
-    return (num / den.clamp_min(1e-12)).float()
+    (photo, render) sRGB images: caustics scale linear light, so their mean is 1 there
+    (:func:`robust.colour_gain` on the linearised pairs)."""
+    return colour_gain((srgb_to_linear(photo), srgb_to_linear(render)) for photo, render in pairs)
 
 
 def scale_linear(image: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
