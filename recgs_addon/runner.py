@@ -69,6 +69,9 @@ def add_train_arguments(p) -> None:
     p.add_argument("--max-minutes", type=float, default=None, help="wall-clock limit")
     p.add_argument("--iterations", type=int, default=None, help="upper bound on steps")
     p.add_argument("--budget", default="auto", help="maximum Gaussians, or 'auto'")
+    p.add_argument("--density", choices=["mcmc", "adc"], default=None,
+                   help="density control: mcmc (default: relocate dead Gaussians under a fixed budget, "
+                        "3DGS-MCMC) or adc (INRIA's clone/split by screen gradient)")
     p.add_argument("--downscale", type=int, default=1, help="train at image size / N")
     p.add_argument("--sh-degree", type=int, default=3, choices=range(4), help="cap on the SH degree")
     p.add_argument("--seed", type=int, default=0)
@@ -196,7 +199,7 @@ def run_train(args) -> int:
                          downscale=args.downscale, sh_degree=args.sh_degree, seed=args.seed,
                          device=args.device, holdout_every=args.holdout_every,
                          budget=_parse_budget(args.budget), compiled=False if args.eager else (True if args.compile_first else None),
-                         keep_best=False if args.keep_last else None)
+                         keep_best=False if args.keep_last else None, strategy=args.density)
             caustic = dict(mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
                            caustic_k=args.caustic_k, caustic_model=args.caustic_model, warmup=args.warmup,
                            recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,

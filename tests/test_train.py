@@ -85,6 +85,98 @@ def test_split_children_are_smaller_and_near_parent():
     assert (kids["means"].abs() < 5 * torch.tensor([0.1, 0.2, 0.3])).all()
 
 
+def _trapezoid(y, x):
+    return float(np.sum((y[1:] + y[:-1]) * np.diff(x)) / 2)   # numpy < 2 has no np.trapezoid
+
+
+@pytest.mark.parametrize("o", [1e-3, 0.3, 0.9, 0.9999])
+@pytest.mark.parametrize("copies", [1, 2, 7, 51])
+def test_split_opacity_scale_keeps_the_integral_of_the_stacked_opacity(o, copies):
+    """N copies with o' and s' stacked at one place: the same peak opacity as the original
+    and, along each axis, the same integral (quadrature in float64; the hard cases are
+    o near 1 with 51 copies, where the closed form alternates)."""
+    on, sn = density.split_opacity_scale(torch.tensor([o], dtype=torch.float64),
+                                         torch.tensor([[1.0, 0.5, 2.0]], dtype=torch.float64),
+                                         torch.tensor([copies]))
+    assert 1 - (1 - on.item()) ** copies == pytest.approx(o, rel=1e-12)
+    for axis, s in enumerate((1.0, 0.5, 2.0)):
+        x = np.linspace(-40 * s, 40 * s, 200_001)
+        stacked = _trapezoid(1 - (1 - on.item() * np.exp(-0.5 * (x / sn[0, axis].item()) ** 2)) ** copies, x)
+        original = _trapezoid(o * np.exp(-0.5 * (x / s) ** 2), x)
+        assert stacked == pytest.approx(original, rel=1e-9)
+    assert (sn <= torch.tensor([[1.0, 0.5, 2.0]], dtype=torch.float64) + 1e-15).all()   # copies never grow
+
+
+def _mcmc_params(opacities):
+    n = len(opacities)
+    g = torch.Generator().manual_seed(1)
+    p = {"means": torch.nn.Parameter(torch.randn(n, 3, generator=g)),
+         "log_scales": torch.nn.Parameter(torch.full((n, 3), -2.0)),
+         "quats": torch.nn.Parameter(torch.tensor([[1.0, 0, 0, 0]] * n)),
+         "logit_opacities": torch.nn.Parameter(torch.logit(torch.tensor(opacities))),
+         "sh_dc": torch.nn.Parameter(torch.randn(n, 1, 3, generator=g)),
+         "sh_rest": torch.nn.Parameter(torch.zeros(n, 3, 3))}
+    opt = torch.optim.Adam([{"params": [p[k]], "name": k, "lr": 0.1} for k in p])
+    sum(v.sum() for v in p.values()).backward()
+    opt.step()
+    return p, opt
+
+
+def test_relocate_moves_dead_gaussians_onto_live_ones_and_clears_their_moments():
+    p, opt = _mcmc_params([0.001, 0.8, 0.002, 0.5, 0.9])
+    live_before = {k: v.detach()[[1, 3, 4]].clone() for k, v in p.items()}
+    moved = density.relocate(p, opt, torch.Generator().manual_seed(0))
+    assert moved == 2 and p["means"].shape == (5, 3)
+    op = torch.sigmoid(p["logit_opacities"].detach())
+    assert (op >= density.DEAD_OPACITY).all()
+    for dead in (0, 2):   # a copy of a live Gaussian: same centre and colour as one of them
+        src = [i for i in (1, 3, 4) if torch.equal(p["means"][dead], p["means"][i])]
+        assert src and torch.equal(p["sh_dc"][dead], p["sh_dc"][src[0]])
+        assert op[dead] == op[src[0]] and torch.sigmoid(live_before["logit_opacities"][[1, 3, 4].index(src[0])]) > op[dead]
+        for k in p:
+            assert torch.all(opt.state[p[k]]["exp_avg"][[dead, src[0]]] == 0)
+    untouched = [i for i in (1, 3, 4) if not any(torch.equal(p["means"][d], p["means"][i]) for d in (0, 2))]
+    for i in untouched:   # live Gaussians nobody copied keep their values and moments
+        assert torch.equal(p["logit_opacities"][i], live_before["logit_opacities"][[1, 3, 4].index(i)])
+        assert torch.any(opt.state[p["means"]]["exp_avg"][i] != 0)
+
+
+def test_grow_appends_copies_drawn_by_opacity():
+    p, opt = _mcmc_params([0.001, 0.9, 0.001, 0.001])
+    o1 = float(torch.sigmoid(p["logit_opacities"][1]))
+    assert density.grow(p, opt, 3, torch.Generator().manual_seed(0)) == 3
+    assert p["means"].shape == (7, 3) and opt.state[p["means"]]["exp_avg"].shape == (7, 3)
+    assert torch.equal(p["means"][4:], p["means"][[1, 1, 1]])   # the only live one, 4 copies in all
+    op = torch.sigmoid(p["logit_opacities"].detach())
+    assert 1 - (1 - op[1]) ** 4 == pytest.approx(o1, rel=1e-5)
+    assert torch.all(opt.state[p["quats"]]["exp_avg"][[1, 4, 5, 6]] == 0)
+    sum(v.sum() for v in p.values()).backward()
+    opt.step()   # shapes agree
+
+
+def test_perturb_means_moves_only_nearly_transparent_gaussians_along_their_covariance():
+    p, _ = _mcmc_params([0.9, 1e-4, 0.5, 1e-4])
+    with torch.no_grad():
+        p["log_scales"][3] = torch.log(torch.tensor([1.0, 1e-3, 1e-3]))   # a needle along x
+        p["quats"][3] = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    before = p["means"].detach().clone()
+    moved = density.perturb_means(p, lr_means=1e-3, noise_lr=5e2, generator=torch.Generator().manual_seed(0))
+    assert moved == 2
+    d = p["means"].detach() - before
+    assert torch.equal(d[[0, 2]], torch.zeros(2, 3))
+    assert d[1].abs().max() > 0 and d[3].abs().max() > 0
+    assert d[3, 0].abs() > 1e3 * d[3, 1:].abs().max()   # Sigma @ eps: the needle's own axis
+
+
+def test_mcmc_strategy_trains_within_its_budget(small_scene):
+    cfg = tiny_cfg(strategy="mcmc", opacity_reg=0.01, scale_reg=0.01, budget=260, growth_rate=0.25)
+    tr = make_trainer(small_scene, cfg)
+    start = tr.evaluate()["psnr"]
+    tr.run()
+    assert tr.params["means"].shape[0] == 260
+    assert tr.evaluate()["psnr"] > start + 1.0
+
+
 def test_training_improves_and_is_deterministic(small_scene):
     a = make_trainer(small_scene, tiny_cfg())
     start = a.evaluate()["psnr"]
@@ -140,11 +232,14 @@ def test_fused_adam_matches_foreach_and_old_checkpoints_resume_fused(small_scene
         assert torch.allclose(resumed.params[k], plain.params[k], rtol=1e-4, atol=1e-5), k
 
 
-def test_row_sparse_gradients_train_exactly_like_autograd(small_scene):
+@pytest.mark.parametrize("strategy", ["adc", "mcmc"])
+def test_row_sparse_gradients_train_exactly_like_autograd(small_scene, strategy):
     """RowGrads (gradients only at the rows in view, persistent buffers) trains bit for bit
     like plain autograd's full-size index_select backward: through densification, pruning, an
-    opacity reset and SH degrees rising from 0 (the rest block joins the optimiser late)."""
-    kw = dict(sh_policy="schedule", sh_every=30, sh_degree=2, opacity_reset_every=60, iterations=100)
+    opacity reset and SH degrees rising from 0 (the rest block joins the optimiser late); with
+    mcmc, through relocation and the regularisers (differentiated on the rows in view both ways)."""
+    kw = dict(sh_policy="schedule", sh_every=30, sh_degree=2, opacity_reset_every=60, iterations=100,
+              strategy=strategy, budget=300)
     sparse = make_trainer(small_scene, tiny_cfg(**kw))
     partial = []
     write = sparse.row_grads.write
@@ -158,7 +253,7 @@ def test_row_sparse_gradients_train_exactly_like_autograd(small_scene):
     plain = make_trainer(small_scene, tiny_cfg(**kw))
     plain.row_grads = RowGrads(sparse=False)
     plain.run()
-    assert any(partial) and sparse.sh_degree == 2
+    assert (any(partial) or strategy == "mcmc") and sparse.sh_degree == 2
     assert len(sparse.params["means"]) != len(make_trainer(small_scene, tiny_cfg(**kw)).params["means"])
     for k in plain.params:
         assert torch.equal(sparse.params[k], plain.params[k]), k

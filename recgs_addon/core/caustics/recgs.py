@@ -239,8 +239,7 @@ class RecGS(Method):
         last step): from here the model's low frequencies change little, so C can hold
         caustics rather than the model's own growing pains."""
         tr = self.trainer
-        n = int(tr.params["means"].shape[0])
-        return tr.step > tr.cfg.densify_from and (not tr.densifying() or (tr.budget is not None and n >= tr.budget))
+        return tr.step > tr.cfg.densify_from and tr.growth_over()
 
     def _warmup_time_up(self) -> bool:
         """With a time limit, the warm-up gets at most ``warmup_share`` of it."""

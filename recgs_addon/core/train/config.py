@@ -1,8 +1,9 @@
 """Training settings: :class:`TrainConfig` holds every setting of the trainer (a caustic
 method's own settings live beside it, in core/caustics/config.py); :func:`preset` gives
 
-* ``default``: lean: coarse to fine, growth under a budget that stops once held-out PSNR
-  stops improving, SH degree raised only when it helps held-out views, stop on a held-out
+* ``default``: lean: coarse to fine, 3DGS-MCMC density control (dead Gaussians relocated,
+  growth by opacity) under a budget of one Gaussian per 36 training pixels that stops growing
+  once held-out PSNR stops improving, SH degree raised only when it helps held-out views, stop on a held-out
   plateau, and end with the model that scored best on the held-out photos (measured in
   docs/training.md and docs/caustics.md);
 * ``vanilla``: INRIA's schedule: 30k iterations, densify every 100 from 500 to 15k, opacity
@@ -44,6 +45,11 @@ class TrainConfig:
     densify_every: int = 100
     densify_grad_threshold: float = 2e-4
     opacity_reset_every: int = 3000
+    strategy: str = "adc"                # "adc": clone/split by screen gradient (INRIA) | "mcmc": relocate dead, grow by opacity
+    opacity_reg: float = 0.0             # loss + this * mean opacity (3DGS-MCMC: 0.01)
+    scale_reg: float = 0.0               # loss + this * mean scale / scene extent (3DGS-MCMC: 0.01, unnormalised)
+    mcmc_draw: str = "opacity"           # mcmc: draw sources by "opacity" (3DGS-MCMC) or "gradient" (opacity x screen gradient)
+    noise_lr: float = 0.0                # mcmc: exploration noise on nearly transparent Gaussians (3DGS-MCMC: 5e5)
     # coarse to fine: ((until_step, extra downscale factor), ...); the last level is 1
     pyramid: tuple = ()
     # evaluation and stopping
@@ -78,6 +84,8 @@ class TrainConfig:
             raise RecGSError(f"iterations must be at least 1, got {self.iterations}")
         if self.max_minutes is not None and not self.max_minutes > 0:   # NaN fails this too
             raise RecGSError(f"the time limit must be a number of minutes above 0, got {self.max_minutes}")
+        if self.strategy not in ("adc", "mcmc"):
+            raise RecGSError(f"unknown density strategy {self.strategy!r} (choose adc or mcmc)")
         if self.holdout_every < 0:
             raise RecGSError(f"holdout every must be 0 (hold out none) or a positive number, got {self.holdout_every}")
         if not 0 <= self.seed < 2 ** 64:   # what numpy's and torch's generators take
@@ -93,7 +101,18 @@ def preset(name: str, **overrides) -> TrainConfig:
         cfg = TrainConfig(preset="default", iterations=30_000, densify_from=200, densify_until=4000,
                           densify_every=100, opacity_reset_every=0, pyramid=((300, 2),),
                           eval_every=250, plateau_patience=4, growth_patience=2, sh_policy="probation",
-                          growth_rate=0.25, pixels_per_gaussian=8.0, keep_best=True)
+                          growth_rate=0.25, keep_best=True, **DENSITY_DEFAULTS["mcmc"])
+        if overrides.get("strategy") == "adc":   # the earlier default, whole
+            cfg = replace(cfg, **DENSITY_DEFAULTS["adc"])
     else:
         raise RecGSError(f"unknown preset {name!r} (choose default or vanilla)")
     return replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+
+
+#: The default preset's settings that go with each density control (docs/training.md,
+#: "Quality against size"): 3DGS-MCMC's regularisers and one Gaussian per 6x6 block of
+#: training pixels, or INRIA's clone/split with one per 8 pixels.
+DENSITY_DEFAULTS = {
+    "mcmc": dict(strategy="mcmc", opacity_reg=0.01, scale_reg=0.01, pixels_per_gaussian=36.0),
+    "adc": dict(strategy="adc", opacity_reg=0.0, scale_reg=0.0, pixels_per_gaussian=8.0),
+}

@@ -8,6 +8,7 @@ tensors and the matching Adam moments, so no stale state survives a change of N.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 
@@ -118,3 +119,148 @@ class GradientStats:
 
     def state_dict(self) -> dict:
         return {"accum": self.accum, "count": self.count, "max_radius": self.max_radius}
+
+
+# --- relocation under a fixed budget (3DGS-MCMC, Kheradmand et al. 2024) -----------------
+
+#: A Gaussian below this opacity is dead: relocation moves it onto a live one.
+DEAD_OPACITY = 0.005
+#: At most this many copies of one Gaussian (the original included) in one relocation.
+MAX_COPIES = 51
+#: Opacities after a split stay below this (1 - opacity is raised to 1/N).
+MAX_OPACITY = 1.0 - 1e-6
+
+
+def split_opacity_scale(opacity: torch.Tensor, scale: torch.Tensor, copies: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Opacity and scale for each of ``copies`` Gaussians that replace one of opacity
+    ``opacity`` and scale ``scale`` at the same place (3DGS-MCMC, eq. 9-10).
+
+    Args:
+        opacity: (M,) opacities in (0, 1).
+        scale: (M, 3) standard deviations (not logs).
+        copies: (M,) int, N >= 1 Gaussians the original becomes.
+
+    Returns: (M,) new opacity ``o' = 1 - (1 - o)^(1/N)`` (N copies stacked show the original's
+    peak opacity) and (M, 3) new scale ``s * o / D`` with
+    ``D = sum_{j=1..N} C(N, j) (-1)^(j+1) o'^j / sqrt(j)``, which keeps the integral of the
+    stacked opacity along each axis, ``int 1 - (1 - o' g(x/s'))^N dx = int o g(x/s) dx``
+    (tests/test_density.py checks it by quadrature). Computed in float64: with
+    ``N o' <= -log(1 - o)`` the alternating terms stay small.
+    """
+    o = opacity.to(torch.float64).clamp(1e-12, MAX_OPACITY)
+    n = copies.to(torch.float64).clamp(1, MAX_COPIES)
+    o_new = 1.0 - torch.pow(1.0 - o, 1.0 / n)
+    j = torch.arange(1, MAX_COPIES + 1, dtype=torch.float64)
+    log_binom = torch.lgamma(n[:, None] + 1) - torch.lgamma(j + 1) - torch.lgamma((n[:, None] - j).clamp_min(0) + 1)
+    terms = torch.exp(log_binom) * torch.pow(o_new[:, None], j) / j.sqrt() * torch.where(j % 2 == 1, 1.0, -1.0)
+    terms = torch.where(j[None, :] <= n[:, None], terms, torch.zeros_like(terms))
+    denom = terms.sum(1)
+    new_scale = scale.to(torch.float64) * (o / denom)[:, None]
+    return o_new.to(opacity.dtype), new_scale.to(scale.dtype)
+
+
+def _copy_sources(params: dict, sources: torch.Tensor) -> tuple[torch.Tensor, dict]:
+    """The distinct rows of ``sources`` and their new opacity logits and log scales, each
+    becoming 1 + (times drawn) Gaussians."""
+    uniq, times = torch.unique(sources, return_counts=True)
+    opac = torch.sigmoid(params["logit_opacities"].detach()[uniq])
+    scale = params["log_scales"].detach()[uniq].exp()
+    o_new, s_new = split_opacity_scale(opac, scale, times + 1)
+    o_new = o_new.clamp(1e-12, MAX_OPACITY)
+    return uniq, {"logit_opacities": torch.log(o_new) - torch.log1p(-o_new), "log_scales": s_new.log()}
+
+
+def _draw(params: dict, alive: torch.Tensor, count: int, generator: torch.Generator,
+          score: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """``count`` indices of live Gaussians drawn with probability proportional to opacity
+    (3DGS-MCMC), or to opacity times ``score`` (N,) where that is positive somewhere."""
+    idx = torch.nonzero(alive).squeeze(1)
+    w = torch.sigmoid(params["logit_opacities"].detach()[idx]).to(torch.float64)
+    if score is not None:
+        ws = w * score.detach()[idx].to(torch.float64).clamp_min(0)
+        if bool(ws.sum() > 0) and bool(torch.isfinite(ws).all()):
+            w = ws
+    return idx[torch.multinomial(w, count, replacement=True, generator=generator)]
+
+
+def relocate(params: dict, optimizer, generator: torch.Generator, dead_opacity: float = DEAD_OPACITY,
+             score: Optional[torch.Tensor] = None) -> int:
+    """Move every dead Gaussian (opacity below ``dead_opacity``, or not finite) onto a live one
+    drawn by opacity; the source and its copies share its opacity and shrink so that together
+    they render about as it did (:func:`split_opacity_scale`). The Adam moments of every row
+    touched start again at zero. Returns the number moved."""
+    op = torch.sigmoid(params["logit_opacities"].detach())
+    finite = torch.isfinite(params["means"].detach()).all(1) & torch.isfinite(op)
+    dead = (op < dead_opacity) | ~finite
+    alive = ~dead
+    n_dead = int(dead.sum())
+    if n_dead == 0 or not bool(alive.any()):
+        return 0
+    sources = _draw(params, alive, n_dead, generator, score)
+    uniq, new = _copy_sources(params, sources)
+    dead_idx = torch.nonzero(dead).squeeze(1)
+    rows = torch.cat([uniq, dead_idx])
+
+    def write(name, t, is_state):
+        t = t.clone()
+        if is_state:
+            t[rows] = 0
+            return t
+        if name in new:
+            t[uniq] = new[name].to(t.dtype)
+        t[dead_idx] = t[sources]
+        return t
+
+    _replace(params, optimizer, write)
+    return n_dead
+
+
+def grow(params: dict, optimizer, count: int, generator: torch.Generator,
+         score: Optional[torch.Tensor] = None) -> int:
+    """Add ``count`` Gaussians as copies of live ones drawn by opacity (the same split as
+    :func:`relocate`); new rows start with zero Adam moments. Returns the number added."""
+    op = torch.sigmoid(params["logit_opacities"].detach())
+    alive = op >= DEAD_OPACITY
+    if count <= 0 or not bool(alive.any()):
+        return 0
+    sources = _draw(params, alive, count, generator, score)
+    uniq, new = _copy_sources(params, sources)
+
+    def write(name, t, is_state):
+        t = t.clone()
+        if is_state:
+            t[uniq] = 0
+            return torch.cat([t, torch.zeros_like(t[sources])])
+        if name in new:
+            t[uniq] = new[name].to(t.dtype)
+        return torch.cat([t, t[sources]])
+
+    _replace(params, optimizer, write)
+    return count
+
+
+#: 3DGS-MCMC's noise reaches Gaussians below about this opacity (a steep sigmoid around it).
+NOISE_OPACITY = 0.005
+NOISE_SHARPNESS = 100.0
+
+
+def perturb_means(params: dict, lr_means: float, noise_lr: float, generator: torch.Generator) -> int:
+    """3DGS-MCMC's exploration noise: move nearly transparent Gaussians by
+    ``Sigma @ eps * noise_lr * lr_means * sigmoid(-k (opacity - t))`` (``Sigma`` the Gaussian's
+    covariance, ``eps`` standard normal), so that they wander where the data can use them
+    while opaque ones stay put. Only rows where the factor exceeds 1e-4 are touched (the
+    others would move by less than a ten-thousandth of the step). Returns how many moved."""
+    op = torch.sigmoid(params["logit_opacities"].detach())
+    gate = torch.sigmoid(-NOISE_SHARPNESS * (op - NOISE_OPACITY))
+    rows = torch.nonzero(gate > 1e-4).squeeze(1)
+    if rows.numel() == 0:
+        return 0
+    R = quat_to_rotmat(params["quats"].detach()[rows])
+    s2 = params["log_scales"].detach()[rows].exp().square()
+    cov = R @ (s2[:, :, None] * R.transpose(1, 2))
+    eps = torch.randn(len(rows), 3, generator=generator, dtype=cov.dtype)
+    step = (cov @ eps[:, :, None]).squeeze(2) * (gate[rows] * noise_lr * lr_means)[:, None]
+    with torch.no_grad():
+        params["means"].index_add_(0, rows, step.to(params["means"].dtype))
+    return int(rows.numel())

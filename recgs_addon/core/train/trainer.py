@@ -198,6 +198,8 @@ class Trainer:
         target, weight = self.objective.target(index, img, out.rgb.detach())
         loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight,
                              self.objective.loss_kind)
+        if c.opacity_reg or c.scale_reg:
+            loss = loss + self._regulariser(rg, out.radii > 0)
         value = loss.item()
         if not math.isfinite(value):   # skip the update: the parameters keep their last good values
             self.bad_steps += 1
@@ -214,6 +216,8 @@ class Trainer:
             self.stats.add(out.means2d.grad, out.radii, cam.width, cam.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        if c.noise_lr and self.densifying():
+            density.perturb_means(self.params, self._means_lr(), c.noise_lr, self.gen)
         if self.objective_optimizer is not None:
             self.objective_optimizer.step()
             self.objective_optimizer.zero_grad(set_to_none=True)
@@ -228,6 +232,20 @@ class Trainer:
         if c.sh_policy == "schedule" and self.step % c.sh_every == 0 and self.sh_degree < c.sh_degree:
             self.sh_degree += 1
         return value
+
+    def _regulariser(self, rg: RowGrads, in_view: torch.Tensor) -> torch.Tensor:
+        """3DGS-MCMC's L1 terms, ``opacity_reg * mean(opacity) + scale_reg * mean(scale) /
+        extent``, over the whole model but differentiated on the Gaussians in view
+        (``in_view`` (N,) bool; the others would get a constant push with nothing to weigh it
+        against). Under row-sparse gradients the terms are built on the rows the render read,
+        which are those Gaussians, so both ways train alike (tests/test_train.py)."""
+        c = self.cfg
+        n = self.params["means"].shape[0]
+        op, ls = rg.rows("logit_opacities"), rg.rows("log_scales")
+        if op is None or ls is None:   # plain autograd: the same rows, masked
+            op, ls = self.params["logit_opacities"][in_view], self.params["log_scales"][in_view]
+        return (c.opacity_reg * torch.sigmoid(op).sum() / n
+                + c.scale_reg * ls.exp().sum() / (3 * n * self.extent))
 
     def check_finite(self) -> None:
         """Raise :class:`TrainingDiverged` if a parameter or an Adam moment holds NaN or Inf
@@ -247,12 +265,23 @@ class Trainer:
     def densifying(self) -> bool:
         return self.step < self.cfg.densify_until and not self.growth_frozen
 
+    def growth_over(self) -> bool:
+        """Density control adds no more Gaussians: growth frozen, past its last step, or the
+        model at its budget (within 1 %: pruning keeps it just below). The SH probation and
+        the plateau stop wait for this, not for the end of the densification window: a model
+        that reaches its budget early should not train its remaining minutes at SH degree 0."""
+        n = int(self.params["means"].shape[0])
+        return (self.growth_frozen or not self.densifying()
+                or (self.budget is not None and self.step > self.cfg.densify_from and n >= 0.99 * self.budget))
+
     def densify(self) -> dict:
         """Clone small and split large Gaussians with high screen gradient, within the budget;
         prune transparent, huge and never-visible ones."""
         c = self.cfg
         p = self.params
         n0 = p["means"].shape[0]
+        if c.strategy == "mcmc":
+            return self._relocate_and_grow()
         grads = self.stats.mean().to(self.device)
         max_scale = p["log_scales"].detach().exp().max(1).values
         high = grads >= c.densify_grad_threshold
@@ -289,6 +318,20 @@ class Trainer:
             density.remove(p, self.optimizer, ~prune)
         self.stats = density.GradientStats.zeros(p["means"].shape[0])
         return {"cloned": n_clone, "split": n_split, "pruned": int(prune.sum())}
+
+    def _relocate_and_grow(self) -> dict:
+        """3DGS-MCMC's density control: move dead Gaussians onto live ones, then add copies of
+        live ones (drawn by opacity) up to the budget, at most ``growth_rate`` of the model."""
+        c, p = self.cfg, self.params
+        score = self.stats.mean().to(self.device) if c.mcmc_draw == "gradient" else None
+        moved = density.relocate(p, self.optimizer, self.gen, score=score)
+        n = p["means"].shape[0]
+        room = (self.budget - n) if self.budget is not None else n
+        if c.growth_rate > 0:
+            room = min(room, max(1, int(c.growth_rate * n)))
+        added = density.grow(p, self.optimizer, room, self.gen, score=score)
+        self.stats = density.GradientStats.zeros(p["means"].shape[0])
+        return {"relocated": moved, "added": added}
 
     # --- snapshots (a method that keeps or restores a model uses these) -----------------
     def snapshot(self) -> dict:
@@ -394,7 +437,7 @@ class Trainer:
                 self.growth_frozen = True
                 self.budget = int(self.params["means"].shape[0])
         # SH degree: try one more degree once growth has settled; keep it only if it helps
-        if c.sh_policy == "probation" and not self.sh_state["done"] and (self.growth_frozen or not self.densifying()):
+        if c.sh_policy == "probation" and not self.sh_state["done"] and self.growth_over():
             trial = self.sh_state["trial"]
             if trial is None and self.since_best >= 1:
                 self.sh_state["trial"] = {"from": self.sh_degree, "psnr": self.best_psnr, "step": self.step}
@@ -412,7 +455,7 @@ class Trainer:
                 self.sh_state["trial"] = None
                 self.since_best = 0
         if (c.plateau_patience and self.since_best >= c.plateau_patience
-                and (self.growth_frozen or not self.densifying()) and self.sh_state["done"]
+                and self.growth_over() and self.sh_state["done"]
                 and self.sh_state["trial"] is None):
             self.done_reason = "held-out PSNR plateau"
 
