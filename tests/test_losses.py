@@ -50,6 +50,10 @@ def test_ssim_and_loss_gradients_match_finite_differences():
     a = torch.tensor(rng.random((7, 8, 3)), dtype=torch.float64, requires_grad=True)
     b = torch.tensor(rng.random((7, 8, 3)), dtype=torch.float64)
     assert torch.autograd.gradcheck(lambda x: ssim(x, b), (a,), eps=1e-6, atol=1e-8)
+    # both differentiable: the blur's hand-written backward (the blur itself) on either side,
+    # on images smaller than the 11x11 window (zero padding everywhere)
+    b2 = b.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(ssim, (a, b2), eps=1e-6, atol=1e-8)
     # L1 is not differentiable at 0; the random images keep |a - b| well away from it
     assert torch.autograd.gradcheck(lambda x: training_loss(x, b), (a,), eps=1e-6, atol=1e-8)
 
