@@ -168,6 +168,23 @@ def test_perturb_means_moves_only_nearly_transparent_gaussians_along_their_covar
     assert d[3, 0].abs() > 1e3 * d[3, 1:].abs().max()   # Sigma @ eps: the needle's own axis
 
 
+def test_regulariser_gradient_is_autograds(small_scene):
+    """The closed-form gradient of the MCMC terms equals autograd's on the Gaussians in view
+    and is zero elsewhere."""
+    tr = make_trainer(small_scene, tiny_cfg(strategy="mcmc", opacity_reg=0.3, scale_reg=0.7))
+    n = tr.params["means"].shape[0]
+    in_view = torch.rand(n, generator=torch.Generator().manual_seed(2)) > 0.4
+    value = tr._regulariser_grad(in_view)
+    op, ls = tr.params["logit_opacities"], tr.params["log_scales"]
+    x, y = op.detach().double().requires_grad_(True), ls.detach().double().requires_grad_(True)
+    ref = 0.3 * torch.sigmoid(x[in_view]).sum() / n + 0.7 * y[in_view].exp().sum() / (3 * n * tr.extent)
+    ref.backward()
+    assert value == pytest.approx(float(ref), rel=1e-6)
+    assert torch.allclose(op.grad.double(), x.grad, rtol=1e-5, atol=1e-12)
+    assert torch.allclose(ls.grad.double(), y.grad, rtol=1e-5, atol=1e-12)
+    assert torch.all(op.grad[~in_view] == 0)
+
+
 def test_mcmc_strategy_trains_within_its_budget(small_scene):
     cfg = tiny_cfg(strategy="mcmc", opacity_reg=0.01, scale_reg=0.01, budget=260, growth_rate=0.25)
     tr = make_trainer(small_scene, cfg)

@@ -93,12 +93,6 @@ class RowGrads:
         self._leaves[name] = (rows_out, slot, ids, param, cols)
         return rows_out
 
-    def rows(self, name: str) -> Optional[torch.Tensor]:
-        """The rows of ``name`` the last render gathered (differentiable, into :meth:`write`),
-        or None if it gathered none (call before :meth:`write`)."""
-        leaf = self._leaves.get(name)
-        return None if leaf is None else leaf[0]
-
     def write(self) -> None:
         """After ``backward``: set each gathered parameter's ``.grad`` to its full-size buffer
         holding the rows' gradients (zero elsewhere); then forget this render's leaves."""

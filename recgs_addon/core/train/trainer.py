@@ -198,8 +198,6 @@ class Trainer:
         target, weight = self.objective.target(index, img, out.rgb.detach())
         loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight,
                              self.objective.loss_kind)
-        if c.opacity_reg or c.scale_reg:
-            loss = loss + self._regulariser(rg, out.radii > 0)
         value = loss.item()
         if not math.isfinite(value):   # skip the update: the parameters keep their last good values
             self.bad_steps += 1
@@ -212,6 +210,8 @@ class Trainer:
         self.bad_steps = 0
         loss.backward()
         rg.write()   # .grad of the parameters: the visible rows' gradients, zero elsewhere
+        if c.opacity_reg or c.scale_reg:
+            value += self._regulariser_grad(out.radii > 0)
         if self.densifying() and out.means2d.grad is not None:
             self.stats.add(out.means2d.grad, out.radii, cam.width, cam.height)
         self.optimizer.step()
@@ -233,19 +233,31 @@ class Trainer:
             self.sh_degree += 1
         return value
 
-    def _regulariser(self, rg: RowGrads, in_view: torch.Tensor) -> torch.Tensor:
+    def _regulariser_grad(self, in_view: torch.Tensor) -> float:
         """3DGS-MCMC's L1 terms, ``opacity_reg * mean(opacity) + scale_reg * mean(scale) /
-        extent``, over the whole model but differentiated on the Gaussians in view
-        (``in_view`` (N,) bool; the others would get a constant push with nothing to weigh it
-        against). Under row-sparse gradients the terms are built on the rows the render read,
-        which are those Gaussians, so both ways train alike (tests/test_train.py)."""
+        extent`` over the whole model, differentiated on the Gaussians in view (``in_view``
+        (N,) bool; the others would get a constant push with nothing to weigh it against).
+        Their gradient is added to ``.grad`` in closed form after the render's backward, the
+        same sum under row-sparse and plain gradients (tests/test_train.py). Returns the terms'
+        value (for the reported loss)."""
         c = self.cfg
         n = self.params["means"].shape[0]
-        op, ls = rg.rows("logit_opacities"), rg.rows("log_scales")
-        if op is None or ls is None:   # plain autograd: the same rows, masked
-            op, ls = self.params["logit_opacities"][in_view], self.params["log_scales"][in_view]
-        return (c.opacity_reg * torch.sigmoid(op).sum() / n
-                + c.scale_reg * ls.exp().sum() / (3 * n * self.extent))
+        ids = torch.nonzero(in_view).squeeze(1)
+        value = 0.0
+        with torch.no_grad():
+            for name, weight in (("logit_opacities", c.opacity_reg / n),
+                                 ("log_scales", c.scale_reg / (3 * n * self.extent))):
+                if not weight:
+                    continue
+                p = self.params[name]
+                x = p.detach()[ids]
+                f = torch.sigmoid(x) if name == "logit_opacities" else x.exp()
+                g = f * (1 - f) if name == "logit_opacities" else f
+                value += weight * float(f.sum())
+                if p.grad is None:
+                    p.grad = torch.zeros_like(p)
+                p.grad.index_add_(0, ids, (weight * g).to(p.grad.dtype))
+        return value
 
     def check_finite(self) -> None:
         """Raise :class:`TrainingDiverged` if a parameter or an Adam moment holds NaN or Inf
