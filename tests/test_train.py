@@ -185,6 +185,13 @@ def test_regulariser_gradient_is_autograds(small_scene):
     assert torch.all(op.grad[~in_view] == 0)
 
 
+def test_cli_density_default_follows_the_mode():
+    from recgs_addon.runner import default_density
+    assert default_density("3dgs") == "mcmc"
+    assert {default_density(m) for m in ("recgs", "filter2d", "joint", "oracle")} == {"adc"}
+    assert preset("default", strategy=default_density("recgs")).pixels_per_gaussian == 8.0
+
+
 def test_mcmc_strategy_trains_within_its_budget(small_scene):
     cfg = tiny_cfg(strategy="mcmc", opacity_reg=0.01, scale_reg=0.01, budget=260, growth_rate=0.25)
     tr = make_trainer(small_scene, cfg)

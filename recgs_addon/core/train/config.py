@@ -3,7 +3,8 @@ method's own settings live beside it, in core/caustics/config.py); :func:`preset
 
 * ``default``: lean: coarse to fine, 3DGS-MCMC density control (dead Gaussians relocated,
   growth by opacity) under a budget of one Gaussian per 36 training pixels that stops growing
-  once held-out PSNR stops improving, SH degree raised only when it helps held-out views, stop on a held-out
+  once held-out PSNR stops improving (``strategy="adc"``: INRIA's clone/split, one per 8
+  pixels; the command line's choice for the caustic modes), SH degree raised only when it helps held-out views, stop on a held-out
   plateau, and end with the model that scored best on the held-out photos (measured in
   docs/training.md and docs/caustics.md);
 * ``vanilla``: INRIA's schedule: 30k iterations, densify every 100 from 500 to 15k, opacity
