@@ -56,8 +56,10 @@ SURVEYS = {
     # point is what no consistency-based method can tell from texture; see docs/caustics.md)
     "dense": ["--views", "48", "--seed", "1", "--overlap", "0.85", "--sidelap", "0.8"],
 }
+# Every method on one density control (adc, the caustic modes' default; plain 3DGS alone
+# defaults to mcmc), so that a method's score is the method's, not its densification's.
 METHODS = {
-    "3dgs": ["--mode", "3dgs"],
+    "3dgs": ["--mode", "3dgs", "--density", "adc"],
     "filter2d": ["--mode", "filter2d"],
     "joint": ["--mode", "joint"],
     "oracle": ["--mode", "oracle"],

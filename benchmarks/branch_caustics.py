@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     out = Path(a.out); out.mkdir(parents=True, exist_ok=True)
     gt = str(Path(a.scene) / "clean")
-    cfg = preset("default", iterations=a.iterations, downscale=a.downscale)
+    cfg = preset("default", iterations=a.iterations, downscale=a.downscale, strategy="adc")
     extra = dict(kv.split("=") for kv in a.extra.split(",") if kv)
     def cc(**kw):
         kw = {**kw}
@@ -66,7 +66,7 @@ def main(argv=None) -> int:
             print(name, json.loads(res.read_text())); continue
         t = time.time()
         kw = VARIANTS[name]
-        m = make_method(a.scene, preset("default", iterations=a.iterations, downscale=a.downscale), cc(**kw), gt_images=gt)
+        m = make_method(a.scene, preset("default", iterations=a.iterations, downscale=a.downscale, strategy="adc"), cc(**kw), gt_images=gt)
         if kw["mode"] == "3dgs":
             m.trainer.load_state_dict(state)
         else:
