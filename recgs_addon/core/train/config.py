@@ -4,9 +4,9 @@ method's own settings live beside it, in core/caustics/config.py); :func:`preset
 * ``default``: lean: coarse to fine, 3DGS-MCMC density control (dead Gaussians relocated,
   growth by opacity) under a budget of one Gaussian per 36 training pixels that stops growing
   once held-out PSNR stops improving (``strategy="adc"``: INRIA's clone/split, one per 8
-  pixels; the command line's choice for the caustic modes), SH degree raised only when it helps held-out views, stop on a held-out
-  plateau, and end with the model that scored best on the held-out photos (measured in
-  docs/training.md and docs/caustics.md);
+  pixels; the command line's choice for the caustic modes), SH degree raised only when it
+  helps held-out views, stop on a held-out plateau, and end with the model that scored best
+  on the held-out photos (measured in docs/training.md and docs/caustics.md);
 * ``vanilla``: INRIA's schedule: 30k iterations, densify every 100 from 500 to 15k, opacity
   reset every 3k, SH degree +1 every 1k.
 """
@@ -102,9 +102,8 @@ def preset(name: str, **overrides) -> TrainConfig:
         cfg = TrainConfig(preset="default", iterations=30_000, densify_from=200, densify_until=4000,
                           densify_every=100, opacity_reset_every=0, pyramid=((300, 2),),
                           eval_every=250, plateau_patience=4, growth_patience=2, sh_policy="probation",
-                          growth_rate=0.25, keep_best=True, **DENSITY_DEFAULTS["mcmc"])
-        if overrides.get("strategy") == "adc":   # the earlier default, whole
-            cfg = replace(cfg, **DENSITY_DEFAULTS["adc"])
+                          growth_rate=0.25, keep_best=True,
+                          **DENSITY_DEFAULTS.get(overrides.get("strategy") or "mcmc", {}))
     else:
         raise RecGSError(f"unknown preset {name!r} (choose default or vanilla)")
     return replace(cfg, **{k: v for k, v in overrides.items() if v is not None})

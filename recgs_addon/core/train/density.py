@@ -145,7 +145,7 @@ def split_opacity_scale(opacity: torch.Tensor, scale: torch.Tensor, copies: torc
     peak opacity) and (M, 3) new scale ``s * o / D`` with
     ``D = sum_{j=1..N} C(N, j) (-1)^(j+1) o'^j / sqrt(j)``, which keeps the integral of the
     stacked opacity along each axis, ``int 1 - (1 - o' g(x/s'))^N dx = int o g(x/s) dx``
-    (tests/test_density.py checks it by quadrature). Computed in float64: with
+    (tests/test_train.py checks it by quadrature). Computed in float64: with
     ``N o' <= -log(1 - o)`` the alternating terms stay small.
     """
     o = opacity.to(torch.float64).clamp(1e-12, MAX_OPACITY)

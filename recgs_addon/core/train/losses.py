@@ -78,9 +78,9 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """(B, C, H, W) SSIM of each pixel's window."""
     a, b = _bchw(a), _bchw(b)
     w = gaussian_window(dtype=a.dtype).to(a.device)
-    # the blurs in grouped convolutions, per channel (the same sums as one call per image):
-    # one call for the three that follow ``a``, one for the two of ``b`` alone (in training
-    # the target, constant: no graph, no backward)
+    # the blurs work per channel, so a few images blur in one call: one for the three that
+    # follow ``a``, one for the two of ``b`` alone (in training the target, constant: no
+    # graph, no backward)
     c = a.shape[1]
 
     def blur(x):

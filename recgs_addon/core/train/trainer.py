@@ -212,7 +212,7 @@ class Trainer:
         rg.write()   # .grad of the parameters: the visible rows' gradients, zero elsewhere
         if c.opacity_reg or c.scale_reg:
             value += self._regulariser_grad(out.radii > 0)
-        if self.densifying() and out.means2d.grad is not None:
+        if self.densifying() and self._uses_gradient_stats() and out.means2d.grad is not None:
             self.stats.add(out.means2d.grad, out.radii, cam.width, cam.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
@@ -277,6 +277,20 @@ class Trainer:
     def densifying(self) -> bool:
         return self.step < self.cfg.densify_until and not self.growth_frozen
 
+    def _uses_gradient_stats(self) -> bool:
+        """Density control reads the accumulated screen gradients (clone/split, or MCMC
+        drawing by gradient); otherwise a step need not accumulate them."""
+        c = self.cfg
+        return c.strategy == "adc" or c.mcmc_draw == "gradient"
+
+    def _growth_room(self, n: int, unbounded: int) -> int:
+        """Gaussians density control may add to a model of ``n``: up to the budget (``unbounded``
+        without one), at most ``growth_rate`` of the model."""
+        room = (self.budget - n) if self.budget is not None else unbounded
+        if self.cfg.growth_rate > 0:
+            room = min(room, max(1, int(self.cfg.growth_rate * n)))
+        return room
+
     def growth_over(self) -> bool:
         """Density control adds no more Gaussians: growth frozen, past its last step, or the
         model at its budget (within 1 %: pruning keeps it just below). The SH probation and
@@ -290,18 +304,16 @@ class Trainer:
         """Clone small and split large Gaussians with high screen gradient, within the budget;
         prune transparent, huge and never-visible ones."""
         c = self.cfg
-        p = self.params
-        n0 = p["means"].shape[0]
         if c.strategy == "mcmc":
             return self._relocate_and_grow()
+        p = self.params
+        n0 = p["means"].shape[0]
         grads = self.stats.mean().to(self.device)
         max_scale = p["log_scales"].detach().exp().max(1).values
         high = grads >= c.densify_grad_threshold
         clone = high & (max_scale <= density.PERCENT_DENSE * self.extent)
         split = high & ~clone
-        room = (self.budget - n0) if self.budget is not None else n0 * 10
-        if c.growth_rate > 0:
-            room = min(room, max(1, int(c.growth_rate * n0)))
+        room = self._growth_room(n0, unbounded=n0 * 10)
         want = int(clone.sum() + split.sum())  # a split adds one net Gaussian
         if want > max(room, 0):
             cand = torch.nonzero(clone | split).squeeze(1)
@@ -338,10 +350,7 @@ class Trainer:
         score = self.stats.mean().to(self.device) if c.mcmc_draw == "gradient" else None
         moved = density.relocate(p, self.optimizer, self.gen, score=score)
         n = p["means"].shape[0]
-        room = (self.budget - n) if self.budget is not None else n
-        if c.growth_rate > 0:
-            room = min(room, max(1, int(c.growth_rate * n)))
-        added = density.grow(p, self.optimizer, room, self.gen, score=score)
+        added = density.grow(p, self.optimizer, self._growth_room(n, unbounded=n), self.gen, score=score)
         self.stats = density.GradientStats.zeros(p["means"].shape[0])
         return {"relocated": moved, "added": added}
 
