@@ -268,9 +268,9 @@ def test_warm_up_borrows_a_core_when_none_is_spare(cache, monkeypatch):
 
 @pytest.mark.slow
 def test_real_numba_warm_up_fills_the_user_cache(tmp_path):
-    """The numba warm-up subprocess compiles into RecGS's per-user cache and leaves the marker;
-    a run without a compiler then takes numba's path from its first step, loading (not
-    compiling) the kernels."""
+    """The numba warm-up subprocess compiles into RecGS's per-user cache and leaves the marker
+    (the rasterizer's kernels and the loss's SSIM); a run without a compiler then takes numba's
+    path from its first step, loading (not compiling) the kernels."""
     import os
     env = {**os.environ, "RECGS_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
     env.pop("NUMBA_CACHE_DIR", None)
@@ -279,6 +279,8 @@ def test_real_numba_warm_up_fills_the_user_cache(tmp_path):
                    check=True, cwd=ROOT)
     numba_dir = tmp_path / "cache" / "numba"
     assert list(numba_dir.glob("recgs-warm-*")) and list(numba_dir.rglob("*.nbi"))
+    assert {p.name.split(".")[1].split("-")[0] for p in numba_dir.rglob("_numba_ssim.*.nbi")} >= {
+        "forward_rows", "forward_cols", "backward_rows", "backward_cols"}
     (tmp_path / "bin").mkdir()
     probe = ("import json, time\n"
              "from recgs_addon.core.train.compiling import CompileSwitch\n"

@@ -115,3 +115,74 @@ def test_l2_loss_is_the_mean_squared_error_and_fits_the_mean():
         assert float(x.mean()) == pytest.approx(want, abs=0.01), kind
     with pytest.raises(ValueError):
         training_loss(a, b, 0.0, kind="l3")
+
+
+# ------------------------------------------------------------------------------ numba SSIM
+
+def _numba_ssim():
+    from recgs_addon.core.train import numba_ssim
+    return numba_ssim if numba_ssim.load() is not None else None
+
+
+needs_numba = pytest.mark.skipif(_numba_ssim() is None, reason="numba is not installed here")
+
+
+@needs_numba
+@pytest.mark.parametrize("shape", [(240, 320), (23, 31), (7, 5), (1, 1)])
+@pytest.mark.parametrize("weighted", [False, True])
+def test_numba_ssim_term_matches_the_eager_oracle(shape, weighted):
+    """The loss with numba's SSIM against the eager definition, values and gradients, on a
+    view's size, odd sizes and images smaller than the 11x11 window."""
+    g = torch.Generator().manual_seed(shape[0] + weighted)
+    a = torch.rand(*shape, 3, generator=g)
+    b = (a + 0.1 * torch.randn(*shape, 3, generator=g)).clamp(0, 1)
+    w = torch.rand(*shape, generator=g) if weighted else None
+    grads = []
+    for fast in (False, True):
+        x = a.clone().requires_grad_(True)
+        loss = training_loss(x, b, 0.2, w, fast_ssim=_numba_ssim().ssim_term if fast else None)
+        loss.backward()
+        grads.append((float(loss), x.grad))
+    (l_eager, g_eager), (l_fast, g_fast) = grads
+    assert l_fast == pytest.approx(l_eager, abs=1e-6)
+    assert torch.isfinite(g_fast).all()
+    assert float((g_fast - g_eager).abs().max()) <= 1e-5 * float(g_eager.abs().max())
+
+
+@needs_numba
+def test_numba_ssim_on_hard_cases():
+    """Flat images (zero variance: C2 alone keeps the ratio finite), identical images (SSIM 1,
+    gradient 0), black against white, and a render far outside [0, 1] (it is not clamped in
+    training): finite, and equal to the float64 eager loss and gradient to float32 rounding."""
+    z = torch.zeros(16, 16, 3)
+    cases = [(z + 0.5, z + 0.5), (z + 0.5, z + 0.25), (z, z + 1.0),
+             (torch.rand(16, 16, 3, generator=torch.Generator().manual_seed(3)) * 40 - 20, z + 0.3)]
+    for a, b in cases:
+        ref = a.double().requires_grad_(True)
+        ref_loss = training_loss(ref, b.double(), 1.0)
+        ref_loss.backward()
+        x = a.clone().requires_grad_(True)
+        loss = training_loss(x, b, 1.0, fast_ssim=_numba_ssim().ssim_term)
+        loss.backward()
+        assert math.isfinite(float(loss)) and torch.isfinite(x.grad).all()
+        assert float(loss) == pytest.approx(float(ref_loss), abs=1e-6)
+        # float32 against float64: to 1e-5 of the largest gradient, or, where the gradient is
+        # about 0 (the render is the target), to 1e-3 of one pixel's share of the loss (1 / 768):
+        # its terms are of order 1 / C2 ~ 1e3 times that share and cancel, so float32 rounding
+        # leaves ~1e-4 of the share (the eager float32 path leaves the same)
+        tol = max(1e-5 * float(ref.grad.abs().max()), 1e-3 / 768)
+        assert float((x.grad.double() - ref.grad).abs().max()) <= tol
+
+
+@needs_numba
+def test_a_learnt_target_keeps_its_gradient_on_the_fast_path():
+    """numba's SSIM differentiates the render only: a target with a gradient of its own (the
+    joint baseline's per-view fields) takes the eager SSIM, so its gradient is the eager one."""
+    g = torch.Generator().manual_seed(4)
+    a, b = torch.rand(12, 14, 3, generator=g), torch.rand(12, 14, 3, generator=g)
+    grads = []
+    for fast in (False, True):
+        t = b.clone().requires_grad_(True)
+        training_loss(a, t, 0.2, fast_ssim=_numba_ssim().ssim_term if fast else None).backward()
+        grads.append(t.grad)
+    assert torch.equal(grads[0], grads[1]) and float(grads[0].abs().sum()) > 0

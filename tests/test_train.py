@@ -213,6 +213,24 @@ def test_training_improves_and_is_deterministic(small_scene):
         assert torch.equal(a.params[k], b.params[k]), k
 
 
+@pytest.mark.skipif(__import__("recgs_addon.core.train.numba_ssim", fromlist=["load"]).load() is None,
+                    reason="numba is not installed here")
+def test_numba_path_takes_numba_ssim_with_the_same_loss(small_scene, monkeypatch):
+    """On numba's path a step's SSIM goes through numba's kernels (the eager path's loss to
+    float32 rounding, from the same state); on the eager path it stays eager."""
+    from recgs_addon.core.train import numba_ssim
+    calls = []
+    real = numba_ssim.ssim_term
+    monkeypatch.setattr(numba_ssim, "ssim_term", lambda *a, **k: calls.append(1) or real(*a, **k))
+    losses = {}
+    for path in (False, "numba"):
+        tr = make_trainer(small_scene, tiny_cfg(pyramid=()))
+        tr.compiler.compiled = lambda path=path: path
+        losses[path] = tr.train_step()
+        assert len(calls) == (path == "numba")
+    assert losses["numba"] == pytest.approx(losses[False], rel=1e-5)
+
+
 def test_state_dict_resume_is_exact(small_scene):
     full = make_trainer(small_scene, tiny_cfg())
     full.run()

@@ -146,7 +146,7 @@ def warm_up(max_degree: int = 3) -> None:
 
 
 #: Sources whose change invalidates numba's warm marker (what its kernels are made of).
-_NUMBA_SOURCES = ("render/_numba_impl.py", "render/numba_kernels.py")
+_NUMBA_SOURCES = ("render/_numba_impl.py", "render/numba_kernels.py", "train/_numba_ssim.py", "train/numba_ssim.py")
 
 
 def numba_dir() -> Path:
@@ -189,10 +189,15 @@ def numba_is_warm() -> bool:
 
 
 def _numba_ready() -> bool:
-    """Load numba's kernels here (compiling them if the cache is cold); False if numba fails."""
+    """Load numba's kernels here (compiling them if the cache is cold): the rasterizer's, then
+    the loss's SSIM (whose failure alone leaves the SSIM eager); False if the rasterizer's fail."""
     use_numba_cache()
     from ..render.rasterizer import numba_kernels_ready
-    return numba_kernels_ready()
+    from . import numba_ssim
+    if not numba_kernels_ready():
+        return False
+    numba_ssim.load()
+    return True
 
 
 def warm_up_numba() -> None:

@@ -8,7 +8,7 @@ over pixels and channels.
 from __future__ import annotations
 
 import math
-from typing import Optional
+from typing import Callable, Optional
 
 import torch
 import torch.nn.functional as F
@@ -101,13 +101,27 @@ def l1(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a - b).abs().mean()
 
 
+def ssim_term(render: torch.Tensor, target: torch.Tensor, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """The SSIM part of :func:`training_loss`: ``1 - SSIM(render, target)`` (``weight`` None),
+    or the weighted mean over pixels of ``1 - S`` (S the per-pixel SSIM, averaged over the
+    channels). :func:`.numba_ssim.ssim_term` computes the same through numba's kernels."""
+    if weight is None:
+        return 1.0 - ssim(render, target)
+    smap = ssim_map(render, target).mean(1)[0]   # (H, W)
+    return ((1.0 - smap) * weight).sum() / weight.sum().clamp_min(1e-12)
+
+
 def training_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float = LAMBDA_DSSIM,
-                  weight: Optional[torch.Tensor] = None, kind: str = "l1"):
+                  weight: Optional[torch.Tensor] = None, kind: str = "l1",
+                  fast_ssim: Optional[Callable] = None):
     """(1 - lambda) D + lambda (1 - SSIM), with D the mean absolute error (``kind="l1"``, as
     INRIA 3DGS and RecGS) or the mean squared error (``"l2"``). ``render``, ``target``:
     (H, W, 3). ``weight`` (H, W), optional: how much each pixel counts; both terms become
     weighted means over the pixels (the SSIM term of each pixel's window), so a weight of 1
-    everywhere gives the plain loss.
+    everywhere gives the plain loss. ``fast_ssim``: another implementation of
+    :func:`ssim_term` that differentiates the render only (:func:`.numba_ssim.ssim_term`: the
+    same numbers to float32 rounding), used where the target and weight need no gradient (a
+    learnt target, as the joint baseline's, takes the eager term).
 
     Where views disagree about a point (moving light), an L1 fit takes the *median* of what
     they show and an L2 fit the *mean*; benchmarks/pointwise_bound.py measures the two."""
@@ -117,13 +131,14 @@ def training_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: floa
     d = d.abs() if kind == "l1" else d * d
     if weight is None:
         loss = (1.0 - lambda_dssim) * d.mean()
-        return loss + lambda_dssim * (1.0 - ssim(render, target)) if lambda_dssim else loss
-    total = weight.sum().clamp_min(1e-12)
-    loss = (1.0 - lambda_dssim) * (d * weight.unsqueeze(-1)).sum() / (3 * total)
-    if lambda_dssim:
-        smap = ssim_map(render, target).mean(1)[0]   # (H, W)
-        loss = loss + lambda_dssim * ((1.0 - smap) * weight).sum() / total
-    return loss
+    else:
+        loss = (1.0 - lambda_dssim) * (d * weight.unsqueeze(-1)).sum() / (3 * weight.sum().clamp_min(1e-12))
+    if not lambda_dssim:
+        return loss
+    term = ssim_term
+    if fast_ssim is not None and not target.requires_grad and not (weight is not None and weight.requires_grad):
+        term = fast_ssim
+    return loss + lambda_dssim * term(render, target, weight)
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:

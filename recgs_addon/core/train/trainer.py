@@ -24,7 +24,7 @@ from ..io.colmap import load_scene
 from ..model.gaussians import GaussianSet, init_from_points, num_sh_coeffs
 from ..render.rasterizer import render
 from ..render.rowgrads import RowGrads
-from . import density
+from . import density, numba_ssim
 from .compiling import CompileSwitch
 from .config import TrainConfig
 from .data import TrainData, resolve_image_dir, view_tensors
@@ -191,13 +191,14 @@ class Trainer:
         rg = self.row_grads
         k = num_sh_coeffs(self.sh_degree)   # active SH coefficients, as in _sh()
         p = {n: rg.track(n, v, cols=k - 1 if n == "sh_rest" else None) for n, v in self.params.items()}
+        path = self.compiler.compiled()
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (p["sh_dc"], p["sh_rest"]),
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                     background=torch.tensor(c.background, dtype=torch.float32), compiled=self.compiler.compiled(),
-                     gather=rg)
+                     background=torch.tensor(c.background, dtype=torch.float32), compiled=path, gather=rg)
         target, weight = self.objective.target(index, img, out.rgb.detach())
         loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight,
-                             self.objective.loss_kind)
+                             self.objective.loss_kind,
+                             fast_ssim=numba_ssim.ssim_term if path == "numba" and numba_ssim.load() else None)
         value = loss.item()
         if not math.isfinite(value):   # skip the update: the parameters keep their last good values
             self.bad_steps += 1

@@ -1,0 +1,98 @@
+"""The training loss's SSIM term through numba's kernels (:mod:`._numba_ssim`): the fast
+path that goes with the rasterizer's numba path (no C++ compiler needed).
+
+:func:`ssim_term` is :func:`.losses.ssim_term` (the weighted mean of ``1 - SSIM`` that
+:func:`.losses.training_loss` adds to its photometric term), differentiable in the render
+only. The eager definition is the oracle: the two agree to float32 rounding, values and gradients
+(tests/test_losses.py). On a 320x240 view the eager term costs about 25 ms a step forward and
+backward on one thread, a third of a 60k-Gaussian training step; here it is a few ms.
+
+:func:`load` imports and compiles (or loads from numba's cache) the kernels; the trainer asks
+for this path only once its :class:`.compiling.CompileSwitch` is on numba's, whose background
+warm-up compiles these kernels with the rasterizer's, so a cold cache never stalls a step.
+"""
+from __future__ import annotations
+
+import os
+from typing import Optional
+
+import numpy as np
+import torch
+
+from ..render.numba_kernels import run_ranges
+from .losses import SSIM_C1, SSIM_C2, gaussian_window
+
+_STATE: dict = {}
+
+
+def load():
+    """The kernel module, or None if numba is missing or fails here (why: :func:`error`)."""
+    if "impl" in _STATE or "error" in _STATE:
+        return _STATE.get("impl")
+    try:
+        import numba
+        if os.environ.get("NUMBA_CACHE_DIR"):
+            numba.config.CACHE_DIR = os.environ["NUMBA_CACHE_DIR"]
+        from . import _numba_ssim
+        _STATE["impl"] = _numba_ssim
+        g = torch.rand(2, 3, 3, generator=torch.Generator().manual_seed(0))
+        b = torch.rand(2, 3, 3, generator=torch.Generator().manual_seed(1))
+        ssim_term(g.requires_grad_(), b, torch.ones(2, 3)).backward()   # both signatures the loss uses
+        ssim_term(g, b).backward()
+    except Exception as exc:  # ImportError (no numba), an unsupported platform, ...
+        _STATE.clear()
+        _STATE["error"] = exc
+        return None
+    return _STATE["impl"]
+
+
+def error() -> Optional[BaseException]:
+    return _STATE.get("error")
+
+
+def _row_cuts(rows: int) -> list:
+    parts = max(1, min(4 * max(1, torch.get_num_threads()), rows // 16))
+    return [rows * k // parts for k in range(parts + 1)]
+
+
+_TAPS = gaussian_window(dtype=torch.float32).numpy()
+
+
+class _SSIMTerm(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, render, target, weight, norm):
+        impl = _STATE["impl"]
+        a = render.detach().contiguous().numpy()
+        b = target.detach().contiguous().numpy()
+        h, w, n_c = a.shape
+        cuts = _row_cuts(n_c * h)
+        tmp = np.empty((5, n_c, h, w), np.float32)
+        run_ranges(lambda lo, hi: impl.forward_rows(lo, hi, a, b, _TAPS, tmp), cuts)
+        row_sums = np.empty(n_c * h)
+        grads = np.empty((3, n_c, h, w), np.float32)
+        run_ranges(lambda lo, hi: impl.forward_cols(lo, hi, tmp, _TAPS, np.float32(SSIM_C1), np.float32(SSIM_C2),
+                                                    weight, np.float32(norm), row_sums, grads), cuts)
+        ctx.saved = (a, b, grads, cuts)
+        return torch.tensor(float(row_sums.sum()), dtype=render.dtype)
+
+    @staticmethod
+    def backward(ctx, g):
+        impl = _STATE["impl"]
+        a, b, grads, cuts = ctx.saved
+        tmp = np.empty_like(grads)
+        run_ranges(lambda lo, hi: impl.backward_rows(lo, hi, grads, _TAPS, tmp), cuts)
+        grad_a = np.empty_like(a)
+        run_ranges(lambda lo, hi: impl.backward_cols(lo, hi, tmp, _TAPS, a, b, np.float32(float(g)), grad_a), cuts)
+        return torch.from_numpy(grad_a), None, None, None
+
+
+def ssim_term(render: torch.Tensor, target: torch.Tensor, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """:func:`.losses.ssim_term` through numba's kernels: ``1 - SSIM(render, target)``
+    (``weight`` None), or ``sum_pixels weight (1 - mean_c S) / sum weight`` with S the
+    per-pixel SSIM map. ``render``, ``target``: (H, W, 3) float32 on the CPU; ``weight``:
+    (H, W) or None. Differentiable in ``render`` only. Call :func:`load` first."""
+    h, w, n_c = render.shape
+    if weight is None:
+        return _SSIMTerm.apply(render, target, np.empty((0, 0), np.float32), 1.0 / (n_c * h * w))
+    total = float(weight.sum().clamp_min(1e-12))
+    return _SSIMTerm.apply(render, target, weight.detach().to(torch.float32).contiguous().numpy(), 1.0 / (n_c * total))
