@@ -76,6 +76,21 @@ def engine_info(site: Path) -> dict:
         return {}
 
 
+def update_reason(info: dict, wanted: Optional[Sequence[str]] = None) -> Optional[str]:
+    """Why an installed engine (its :func:`engine_info`) should be installed again, or None:
+    it lacks numba where this Python's numpy takes it (an engine from before numba was part of
+    it: training then runs on eager torch, about 2.5x slower), or its torch is not the pinned
+    one. ``wanted``: the requirements now (default :func:`engine_requirements`)."""
+    wanted = engine_requirements() if wanted is None else tuple(wanted)
+    if any(r.startswith("numba==") for r in wanted) and not info.get("numba"):
+        return "no numba: training runs on the slower eager path"
+    pin = next((r.split("==", 1)[1] for r in wanted if r.startswith("torch==")), None)
+    have = str(info.get("torch") or "?").split("+")[0]
+    if pin is not None and have != pin:
+        return f"torch {have}, this version of RecGS is made for {pin}"
+    return None
+
+
 def _site_dirs(path: Sequence[str]) -> list[str]:
     """The ``site-packages`` folders of ``path`` (Blender's, and the extensions' ``.local`` one
     holding the bundled wheels), which a child Python does not get by itself."""

@@ -136,3 +136,21 @@ def test_batch_mode_finds_the_engine_the_addon_installed(tmp_path, monkeypatch):
     assert os.environ[ei.ENGINE_DIR_ENV] == str(site)           # what the add-on's jobs read
     monkeypatch.setenv(ei.ENGINE_DIR_ENV, "/chosen")
     assert batch.use_installed_engine(FakeBpy) == "/chosen"     # an explicit choice wins
+
+
+def test_an_engine_without_numba_or_with_another_torch_asks_for_an_update(tmp_path):
+    """An engine installed before numba was part of it (its marker has no numba) trains on
+    eager torch: the panel offers *Update Training Engine*; likewise for another torch. An
+    engine without numba where numba cannot come (numpy outside its range) is up to date."""
+    wanted = ("torch==2.13.0", "numba==0.61.2", "numpy==1.26.4")
+    assert "no numba" in ei.update_reason({"torch": "2.13.0+cpu"}, wanted)
+    assert "no numba" in ei.update_reason({"torch": "2.13.0", "numba": None}, wanted)
+    assert ei.update_reason({"torch": "2.13.0+cpu", "numba": "0.61.2"}, wanted) is None
+    assert "torch 2.12.1" in ei.update_reason({"torch": "2.12.1+cpu", "numba": "0.61.2"}, wanted)
+    assert ei.update_reason({"torch": "2.13.0"}, ("torch==2.13.0",)) is None
+    # the marker an install writes is what the check reads (numba: whatever the fresh Python
+    # that checks the install imports, here this one's if it has numba)
+    assert _run(_fake_install(tmp_path, "2.13.0")) == "done"
+    info = ei.engine_info(ei.installed_engine(tmp_path))
+    assert (ei.update_reason(info, wanted) is None) == bool(info.get("numba"))
+    assert "no numba" in ei.update_reason({**info, "numba": None}, wanted)

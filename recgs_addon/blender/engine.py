@@ -183,9 +183,13 @@ def draw_engine(layout) -> None:
     site = ei.installed_engine(engine_root())
     if site is not None:
         info = ei.engine_info(site)
+        outdated = ei.update_reason(info)
         row = layout.row()
-        row.label(text=f"Training engine: torch {info.get('torch', '?')}", icon="CHECKMARK")
+        row.label(text=f"Training engine: torch {info.get('torch', '?')}", icon="ERROR" if outdated else "CHECKMARK")
         row.operator(RECGS_OT_remove_engine.bl_idname, text="", icon="TRASH")
+        if outdated:   # an engine from an earlier version: one click installs the current one over it
+            layout.label(text=outdated[:1].upper() + outdated[1:], icon="INFO")
+            layout.operator(RECGS_OT_install_engine.bl_idname, text="Update Training Engine", icon="FILE_REFRESH")
     else:
         layout.operator(RECGS_OT_install_engine.bl_idname, icon="IMPORT")
         if not bpy.app.online_access:

@@ -235,6 +235,9 @@ def engine_install(expect):
     assert "torch" not in sys.modules, "Blender's own Python imported torch"
     assert "numba" not in sys.modules, "Blender's own Python imported numba"
     assert any(t.startswith("RecGS engine:") for t in texts), texts
+    info = ei.engine_info(site)
+    assert info.get("numba"), f"the engine holds no numba (training would run on eager torch): {info}"
+    assert ei.update_reason(info) is None, ei.update_reason(info)
     size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(site) for f in fs)
     return f"{inst.message}, {size / 2**20:.0f} MiB; progress phases {' > '.join(phases)}"
 
@@ -276,10 +279,15 @@ def train(steps):
     assert s.iteration == steps, (s.iteration, steps)
     assert seen, "no progress seen"
     assert os.path.isfile(os.path.join(s.out_dir, "point_cloud.ply"))
+    # the worker imported numba (its kernels from the first step, or after their warm-up)
+    with open(os.path.join(s.out_dir, "metrics.json")) as f:
+        compile_state = json.load(f)["compile"]
+    assert compile_state["numba"] in ("ready", "warming"), compile_state
     obj = bpy.data.objects[obj.name]
     assert "torch" not in sys.modules, "Blender's own Python imported torch"
     assert "numba" not in sys.modules, "Blender's own Python imported numba"
-    return f"{steps} steps, progress at iterations {seen}, {len(obj.data.vertices)} Gaussians; {s.message}"
+    return (f"{steps} steps, progress at iterations {seen}, {len(obj.data.vertices)} Gaussians, numba "
+            f"{compile_state['numba']}; {s.message}")
 
 
 def train_cancel():
