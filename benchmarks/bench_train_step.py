@@ -1,10 +1,10 @@
 """The trainer's step on a large model: what each speed-up buys, and what it changes.
 
     .venv/bin/python benchmarks/bench_train_step.py MODEL.ply SCENE_DIR [--images clean]
-        [--steps 8] [--rounds 2] [--threads 2] [--count 0]
+        [--steps 8] [--rounds 2] [--threads 2] [--count 0] [--preset vanilla|default]
 
 Loads a trained model (e.g. a vanilla run's ``point_cloud.ply``, a million Gaussians or more)
-into a ``vanilla`` trainer on the survey and runs ``--steps`` full training steps (render,
+into a ``vanilla`` (or ``--preset default``) trainer on the survey and runs ``--steps`` full training steps (render,
 loss, backward, gradient statistics, Adam) from the same state with each speed-up turned off
 in turn, then with all of them off (the trainer as it was before them):
 
@@ -15,7 +15,9 @@ in turn, then with all of them off (the trainer as it was before them):
   joining them for every Gaussian before the render (timed with autograd's gradients, as it
   was; with row grads the join is of the rows only anyway);
 * ``pre-cull``: a conservative candidate test before the exact cull pass, against the exact
-  pass over every Gaussian.
+  pass over every Gaussian;
+* ``numba SSIM``: on numba's path, the loss's SSIM term through numba's kernels
+  (:mod:`recgs_addon.core.train.numba_ssim`), against the eager term.
 
 Prints seconds per step (median over the steps after a warm-up step, best of ``--rounds``
 interleaved rounds) and, for every path, the
@@ -41,6 +43,7 @@ from recgs_addon.core.render import projection  # noqa: E402
 from recgs_addon.core.train.losses import psnr  # noqa: E402
 from recgs_addon.core.io.ply import read_gaussian_ply  # noqa: E402
 from recgs_addon.core.render.rowgrads import RowGrads  # noqa: E402
+from recgs_addon.core.train import numba_ssim  # noqa: E402
 from recgs_addon.core.train.config import preset  # noqa: E402
 from recgs_addon.core.train.trainer import Trainer, make_trainer  # noqa: E402
 
@@ -64,15 +67,18 @@ class _JoinedSH(RowGrads):
         return super().track(name, param, cols)
 
 
-def run_path(tr: Trainer, state: dict, steps: int, fused: bool, grads: str, precull: bool):
+def run_path(tr: Trainer, state: dict, steps: int, fused: bool, grads: str, precull: bool, fast_ssim: bool = True):
     """(seconds per step, trainer after the steps): ``tr`` from ``state`` on the given path;
-    grads: "rows" (RowGrads), "dense" (autograd) or "joined" (autograd, SH joined)."""
+    grads: "rows" (RowGrads), "dense" (autograd) or "joined" (autograd, SH joined);
+    fast_ssim False: the eager SSIM term on numba's path."""
     tr.load_state_dict(copy.deepcopy(state))
     tr.row_grads = {"rows": RowGrads, "dense": lambda: RowGrads(sparse=False), "joined": _JoinedSH}[grads]()
     for g in tr.optimizer.param_groups:
         g["fused"], g["foreach"] = (True, None) if fused else (None, True)
     real = projection._candidates
     projection._candidates = real if precull else _all_candidates
+    real_load = numba_ssim.load
+    numba_ssim.load = real_load if fast_ssim else (lambda: None)
     try:
         times = []
         for _ in range(steps + 1):
@@ -81,6 +87,7 @@ def run_path(tr: Trainer, state: dict, steps: int, fused: bool, grads: str, prec
             times.append(time.perf_counter() - t0)
     finally:
         projection._candidates = real
+        numba_ssim.load = real_load
     return statistics.median(times[1:]), tr
 
 
@@ -93,27 +100,30 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--count", type=int, default=0, help="use this many of the model's Gaussians (0 = all)")
+    ap.add_argument("--preset", default="vanilla", help="trainer preset whose step is timed (vanilla or default)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     g = read_gaussian_ply(args.model)
     if args.count and len(g) > args.count:
         g = g.subset(np.sort(np.random.default_rng(0).choice(len(g), args.count, replace=False)))
-    cfg = preset("vanilla", sh_degree=g.sh_degree)
+    cfg = preset(args.preset, sh_degree=g.sh_degree)
     base = make_trainer(args.scene, cfg, images=args.images, gaussians=g)
     base.sh_degree = g.sh_degree
     base.step = 5000                      # mid-densification: statistics are accumulated
     state = copy.deepcopy(base.state_dict())
     print(f"torch {torch.__version__}, {args.threads} threads; {len(g):,} Gaussians (SH {g.sh_degree}); "
-          f"{args.steps} steps per path, best of {args.rounds} rounds")
-    paths = [("all speed-ups", True, "rows", True), ("foreach Adam", False, "rows", True),
-             ("autograd grads", True, "dense", True), ("+ joined SH", True, "joined", True),
-             ("no pre-cull", True, "rows", False), ("none (before)", False, "joined", False)]
+          f"{args.steps} steps per path, best of {args.rounds} rounds; {args.preset} preset, rasterizer path "
+          f"{base.compiler.compiled()!r}")
+    paths = [("all speed-ups", True, "rows", True, True), ("foreach Adam", False, "rows", True, True),
+             ("autograd grads", True, "dense", True, True), ("+ joined SH", True, "joined", True, True),
+             ("no pre-cull", True, "rows", False, True), ("eager SSIM", True, "rows", True, False),
+             ("none (before)", False, "joined", False, False)]
     results, times = {}, {name: [] for name, *_ in paths}
     run_path(make_trainer(args.scene, cfg, images=args.images, gaussians=g), state, 2, True, "rows", True)  # warm-up
     for r in range(args.rounds):   # interleaved rounds, best round per path: a shared machine is noisy
-        for name, fused, grads, precull in (paths if r % 2 == 0 else paths[::-1]):
+        for name, fused, grads, precull, fast_ssim in (paths if r % 2 == 0 else paths[::-1]):
             t, tr = run_path(make_trainer(args.scene, cfg, images=args.images, gaussians=g),
-                             state, args.steps, fused, grads, precull)
+                             state, args.steps, fused, grads, precull, fast_ssim)
             times[name].append(t)
             results[name] = (min(times[name]), tr)
     fast_t, fast = results["all speed-ups"]
@@ -121,7 +131,8 @@ def main() -> None:
     ref = fast.render_view(view).clamp(0, 1)
     print(f"{'path':>15} {'s/step':>8} {'x fast':>7} {'max |param diff|':>17} {'render PSNR vs fast':>20}")
     for name, (t, tr) in results.items():
-        diff = max(float((tr.params[k] - fast.params[k]).detach().abs().max()) for k in fast.params)
+        diff = max(float((tr.params[k] - fast.params[k]).detach().abs().max()) for k in fast.params
+                   if fast.params[k].numel())   # sh_rest is empty at SH degree 0
         p = psnr(tr.render_view(view).clamp(0, 1), ref) if tr is not fast else float("inf")
         print(f"{name:>15} {t:8.3f} {t / fast_t:7.2f} {diff:17.2e} {p:20.1f}")
 

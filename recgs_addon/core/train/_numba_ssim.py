@@ -43,29 +43,30 @@ def _hblur(src, taps, acc):
 
 
 @numba.njit(inline="always", error_model="numpy")
-def _vblur(src, k, c, y, taps, acc):
-    """acc (W,) <- the vertical blur at row ``y`` of plane ``src[k, c]`` (zero padding: the
-    first tap inside the image sets it, taps outside add nothing)."""
+def _vblur(src, c, y, taps, acc):
+    """acc (K, W) <- the vertical blur at row ``y`` of the planes ``src[k, c]``, k < K (zero
+    padding: the first tap sets each sum, those outside the image add nothing)."""
     h = src.shape[2]
-    w = acc.shape[0]
+    w = acc.shape[1]
     r = taps.shape[0] // 2
-    first = True
-    for t in range(taps.shape[0]):
-        yy = y + t - r
-        if yy < 0 or yy >= h:
-            if first:   # the eager path's first product is with the zero padding
+    for k in range(acc.shape[0]):
+        first = True
+        for t in range(taps.shape[0]):
+            yy = y + t - r
+            if yy < 0 or yy >= h:
+                if first:   # the eager path's first product is with the zero padding
+                    for x in range(w):
+                        acc[k, x] = F32(0.0)
+                    first = False
+                continue
+            wt = taps[t]
+            if first:
                 for x in range(w):
-                    acc[x] = F32(0.0)
+                    acc[k, x] = wt * src[k, c, yy, x]
                 first = False
-            continue
-        wt = taps[t]
-        if first:
-            for x in range(w):
-                acc[x] = wt * src[k, c, yy, x]
-            first = False
-        else:
-            for x in range(w):
-                acc[x] += wt * src[k, c, yy, x]
+            else:
+                for x in range(w):
+                    acc[k, x] += wt * src[k, c, yy, x]
 
 
 @numba.njit(error_model="numpy", nogil=True, cache=True)
@@ -107,8 +108,7 @@ def forward_cols(lo, hi, tmp, taps, c1, c2, weight, norm, row_sums, grads):
     for row in range(lo, hi):
         c = row // h
         y = row - c * h
-        for k in range(5):
-            _vblur(tmp, k, c, y, taps, m[k])
+        _vblur(tmp, c, y, taps, m)
         total = 0.0
         for x in range(w):
             mu_a = m[0, x]
@@ -160,7 +160,6 @@ def backward_cols(lo, hi, tmp, taps, a, b, scale, grad_a):
     for row in range(lo, hi):
         c = row // h
         y = row - c * h
-        for k in range(3):
-            _vblur(tmp, k, c, y, taps, m[k])
+        _vblur(tmp, c, y, taps, m)
         for x in range(w):
             grad_a[y, x, c] = scale * (m[0, x] + F32(2.0) * a[y, x, c] * m[1, x] + b[y, x, c] * m[2, x])
