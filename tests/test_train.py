@@ -154,6 +154,24 @@ def test_grow_appends_copies_drawn_by_opacity():
     opt.step()   # shapes agree
 
 
+def test_relocation_threshold_is_a_setting(small_scene, monkeypatch):
+    """Below ``relocate_opacity`` a Gaussian is relocated, and copies come only from those at
+    or above it; the trainer passes its setting to both."""
+    p, opt = _mcmc_params([0.05, 0.8, 0.002, 0.5, 0.9])
+    assert density.relocate(p, opt, torch.Generator().manual_seed(0), dead_opacity=0.1) == 2
+    assert (torch.sigmoid(p["logit_opacities"].detach()) >= 0.1).all()
+    p, opt = _mcmc_params([0.3, 0.8, 0.5, 0.9])
+    assert density.grow(p, opt, 4, torch.Generator().manual_seed(0), dead_opacity=0.7) == 4
+    assert all(any(torch.equal(p["means"][i], p["means"][j]) for j in (1, 3)) for i in range(4, 8))
+    seen = []
+    for fn in ("relocate", "grow"):
+        real = getattr(density, fn)
+        monkeypatch.setattr(density, fn, lambda *a, real=real, **k: seen.append(k["dead_opacity"]) or real(*a, **k))
+    tr = make_trainer(small_scene, tiny_cfg(strategy="mcmc", relocate_opacity=0.2, budget=260))
+    tr.densify()
+    assert seen == [0.2, 0.2]
+
+
 def test_perturb_means_moves_only_nearly_transparent_gaussians_along_their_covariance():
     p, _ = _mcmc_params([0.9, 1e-4, 0.5, 1e-4])
     with torch.no_grad():
@@ -362,6 +380,7 @@ def test_job_allocator_keeps_freed_memory():
 @pytest.mark.parametrize("kwargs,msg", [
     ({"budget": 0}, "budget must be at least 1"),
     ({"downscale": 8}, "below 8 px"),
+    ({"relocate_opacity": 1.0}, "relocate_opacity must be between 0 and 1"),
 ])
 def test_bad_settings_refused_before_work(small_scene, kwargs, msg):
     with pytest.raises(RecGSError, match=msg):

@@ -123,7 +123,8 @@ class GradientStats:
 
 # --- relocation under a fixed budget (3DGS-MCMC, Kheradmand et al. 2024) -----------------
 
-#: A Gaussian below this opacity is dead: relocation moves it onto a live one.
+#: A Gaussian below this opacity is dead: relocation moves it onto a live one (3DGS-MCMC's
+#: threshold; the default preset raises it, ``TrainConfig.relocate_opacity``).
 DEAD_OPACITY = 0.005
 #: At most this many copies of one Gaussian (the original included) in one relocation.
 MAX_COPIES = 51
@@ -217,11 +218,12 @@ def relocate(params: dict, optimizer, generator: torch.Generator, dead_opacity: 
 
 
 def grow(params: dict, optimizer, count: int, generator: torch.Generator,
-         score: Optional[torch.Tensor] = None) -> int:
-    """Add ``count`` Gaussians as copies of live ones drawn by opacity (the same split as
-    :func:`relocate`); new rows start with zero Adam moments. Returns the number added."""
+         score: Optional[torch.Tensor] = None, dead_opacity: float = DEAD_OPACITY) -> int:
+    """Add ``count`` Gaussians as copies of live ones (opacity at least ``dead_opacity``)
+    drawn by opacity (the same split as :func:`relocate`); new rows start with zero Adam
+    moments. Returns the number added."""
     op = torch.sigmoid(params["logit_opacities"].detach())
-    alive = op >= DEAD_OPACITY
+    alive = op >= dead_opacity
     if count <= 0 or not bool(alive.any()):
         return 0
     sources = _draw(params, alive, count, generator, score)

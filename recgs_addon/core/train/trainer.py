@@ -349,9 +349,10 @@ class Trainer:
         live ones (drawn by opacity) up to the budget, at most ``growth_rate`` of the model."""
         c, p = self.cfg, self.params
         score = self.stats.mean().to(self.device) if c.mcmc_draw == "gradient" else None
-        moved = density.relocate(p, self.optimizer, self.gen, score=score)
+        moved = density.relocate(p, self.optimizer, self.gen, dead_opacity=c.relocate_opacity, score=score)
         n = p["means"].shape[0]
-        added = density.grow(p, self.optimizer, self._growth_room(n, unbounded=n), self.gen, score=score)
+        added = density.grow(p, self.optimizer, self._growth_room(n, unbounded=n), self.gen, score=score,
+                             dead_opacity=c.relocate_opacity)
         self.stats = density.GradientStats.zeros(p["means"].shape[0])
         return {"relocated": moved, "added": added}
 
