@@ -3,8 +3,9 @@ numba's cache has been pointed at RecGS's folder).
 
 The same sums as :func:`.losses.ssim_map` (INRIA's SSIM: 11-tap Gaussian window, zero
 padding), in the same order: each separable pass starts from the first tap and adds the
-others in turn, skipping the taps that fall on the zero padding (the eager path adds exact
-zeros there, and so does this one: each row is copied into a zero-padded buffer first). What the eager path does in ~60 tensor operations a step (five blurred maps
+others in turn (a horizontal pass reads a zero-padded copy of the row, as the eager path's
+shifted adds do; a vertical pass skips the taps outside the image, where the eager path adds
+exact zeros). What the eager path does in ~60 tensor operations a step (five blurred maps
 forward, three backward, each pass a full read and write of every plane) is four passes here,
 each a loop per map and tap over a contiguous row, which LLVM turns into SIMD code.
 
