@@ -824,3 +824,34 @@ def test_numba_projection_gradients_match_float64_autograd(deg, antialiased):
     for name, a, b in zip(PARAM_NAMES, rows32, rows64):
         err = (a.grad.double() - b.grad).abs().max().item()
         assert err <= 1e-6 * b.grad.abs().max().item(), (name, err, b.grad.abs().max().item())
+
+
+@needs_numba
+def test_numba_cull_reads_nothing_of_a_culled_row(monkeypatch):
+    """A culled Gaussian's row of the cull table is never written past its flag: its radius
+    is 0 whatever that memory holds (a signalling NaN here, as an uninitialised buffer may:
+    rounding one raises numpy's "invalid value" warning), with no floating-point warning, and
+    the drawn ones keep their radii."""
+    import warnings
+
+    scene = _rounded(make_scene(5, n=200, deg=0, scale=(0.005, 0.4), logit=(0.0, 3.0), spread=2.0))
+    p32 = torch_params(scene, torch.float32)
+    nk = rasterizer.get_kernels("numba").numba
+    args = ([p.numpy() for p in p32[:4]], np.asarray(scene["viewmat"], np.float64),
+            np.asarray(scene["K"], np.float64), scene["width"], scene["height"], 0.2, False)
+    info, ids, radii = nk.cull(*args[0], *args[1:])
+    real = nk.impl.cull
+
+    def poisoned(lo, hi, *rest):
+        rest[-1][lo:hi].view(np.uint64)[:] = 0x7FF0000000000001   # the info table: signalling NaN
+        return real(lo, hi, *rest)
+
+    monkeypatch.setattr(nk.impl, "cull", poisoned)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        info2, ids2, radii2 = nk.cull(*args[0], *args[1:])
+    drawn = info2[:, 0] > 0
+    assert 0 < drawn.sum() < len(drawn)
+    np.testing.assert_array_equal(radii2, radii)
+    assert (radii2[~drawn] == 0).all() and (radii2[drawn] > 0).all()
+    np.testing.assert_array_equal(ids2, ids)

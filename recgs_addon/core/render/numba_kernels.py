@@ -156,7 +156,9 @@ class NumbaKernels:
                                                  width, height, antialiased, cst, info),
                    _cuts(n, _parts(n)))
         ids = self.impl.visible_in_depth_order(info)
-        radii = np.where(info[:, 0] > 0, np.ceil(info[:, 13]), 0.0).astype(np.int32)
+        drawn = info[:, 0] > 0
+        radii = np.zeros(n, np.int32)   # a culled row's other columns are never written
+        radii[drawn] = np.ceil(info[drawn, 13])
         return info, ids, radii
 
     def bin(self, info, ids, tile_size: int, tiles_x: int, n_tiles: int):
