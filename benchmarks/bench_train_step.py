@@ -17,7 +17,10 @@ in turn, then with all of them off (the trainer as it was before them):
 * ``pre-cull``: a conservative candidate test before the exact cull pass, against the exact
   pass over every Gaussian;
 * ``numba SSIM``: on numba's path, the loss's SSIM term through numba's kernels
-  (:mod:`recgs_addon.core.train.numba_ssim`), against the eager term.
+  (:mod:`recgs_addon.core.train.numba_ssim`), against the eager term;
+* ``own threads``: on numba's path, the step with the kernels on torch's threads and torch on
+  one (:func:`recgs_addon.core.render.numba_kernels.own_threads`), against both sharing
+  torch's count (torch's OpenMP threads spinning on the cores the kernels need).
 
 Prints seconds per step (median over the steps after a warm-up step, best of ``--rounds``
 interleaved rounds) and, for every path, the
@@ -28,6 +31,7 @@ runs first (torch.compile).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import statistics
 import sys
@@ -39,7 +43,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from recgs_addon.core.render import projection  # noqa: E402
+from recgs_addon.core.render import numba_kernels, projection  # noqa: E402
 from recgs_addon.core.train.losses import psnr  # noqa: E402
 from recgs_addon.core.io.ply import read_gaussian_ply  # noqa: E402
 from recgs_addon.core.render.rowgrads import RowGrads  # noqa: E402
@@ -67,10 +71,12 @@ class _JoinedSH(RowGrads):
         return super().track(name, param, cols)
 
 
-def run_path(tr: Trainer, state: dict, steps: int, fused: bool, grads: str, precull: bool, fast_ssim: bool = True):
+def run_path(tr: Trainer, state: dict, steps: int, fused: bool, grads: str, precull: bool, fast_ssim: bool = True,
+             own: bool = True):
     """(seconds per step, trainer after the steps): ``tr`` from ``state`` on the given path;
     grads: "rows" (RowGrads), "dense" (autograd) or "joined" (autograd, SH joined);
-    fast_ssim False: the eager SSIM term on numba's path."""
+    fast_ssim False: the eager SSIM term on numba's path; own False: numba's kernels and torch
+    share torch's thread count."""
     tr.load_state_dict(copy.deepcopy(state))
     tr.row_grads = {"rows": RowGrads, "dense": lambda: RowGrads(sparse=False), "joined": _JoinedSH}[grads]()
     for g in tr.optimizer.param_groups:
@@ -79,6 +85,8 @@ def run_path(tr: Trainer, state: dict, steps: int, fused: bool, grads: str, prec
     projection._candidates = real if precull else _all_candidates
     real_load = numba_ssim.load
     numba_ssim.load = real_load if fast_ssim else (lambda: None)
+    real_own = numba_kernels.own_threads
+    numba_kernels.own_threads = real_own if own else contextlib.nullcontext
     try:
         times = []
         for _ in range(steps + 1):
@@ -88,6 +96,7 @@ def run_path(tr: Trainer, state: dict, steps: int, fused: bool, grads: str, prec
     finally:
         projection._candidates = real
         numba_ssim.load = real_load
+        numba_kernels.own_threads = real_own
     return statistics.median(times[1:]), tr
 
 
@@ -114,16 +123,17 @@ def main() -> None:
     print(f"torch {torch.__version__}, {args.threads} threads; {len(g):,} Gaussians (SH {g.sh_degree}); "
           f"{args.steps} steps per path, best of {args.rounds} rounds; {args.preset} preset, rasterizer path "
           f"{base.compiler.compiled()!r}")
-    paths = [("all speed-ups", True, "rows", True, True), ("foreach Adam", False, "rows", True, True),
-             ("autograd grads", True, "dense", True, True), ("+ joined SH", True, "joined", True, True),
-             ("no pre-cull", True, "rows", False, True), ("eager SSIM", True, "rows", True, False),
-             ("none (before)", False, "joined", False, False)]
+    paths = [("all speed-ups", True, "rows", True, True, True), ("foreach Adam", False, "rows", True, True, True),
+             ("autograd grads", True, "dense", True, True, True), ("+ joined SH", True, "joined", True, True, True),
+             ("no pre-cull", True, "rows", False, True, True), ("eager SSIM", True, "rows", True, False, True),
+             ("shared threads", True, "rows", True, True, False),
+             ("none (before)", False, "joined", False, False, False)]
     results, times = {}, {name: [] for name, *_ in paths}
     run_path(make_trainer(args.scene, cfg, images=args.images, gaussians=g), state, 2, True, "rows", True)  # warm-up
     for r in range(args.rounds):   # interleaved rounds, best round per path: a shared machine is noisy
-        for name, fused, grads, precull, fast_ssim in (paths if r % 2 == 0 else paths[::-1]):
+        for name, fused, grads, precull, fast_ssim, own in (paths if r % 2 == 0 else paths[::-1]):
             t, tr = run_path(make_trainer(args.scene, cfg, images=args.images, gaussians=g),
-                             state, args.steps, fused, grads, precull, fast_ssim)
+                             state, args.steps, fused, grads, precull, fast_ssim, own)
             times[name].append(t)
             results[name] = (min(times[name]), tr)
     fast_t, fast = results["all speed-ups"]

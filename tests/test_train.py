@@ -249,6 +249,42 @@ def test_numba_path_takes_numba_ssim_with_the_same_loss(small_scene, monkeypatch
     assert losses["numba"] == pytest.approx(losses[False], rel=1e-5)
 
 
+
+def test_numba_path_step_gives_torch_threads_to_the_kernels(small_scene, monkeypatch):
+    """On numba's path a step runs torch on one thread and numba's kernels on the threads torch
+    had (numba_kernels.own_threads: torch's spinning OpenMP threads would take their cores),
+    gives torch its count back after the step, also when the step fails, and changes the
+    step's numbers by float rounding only; the eager path leaves both counts alone."""
+    from recgs_addon.core.render import numba_kernels
+    from recgs_addon.core.train import trainer as trainer_module
+    seen, fail = [], []
+    real_render = trainer_module.render
+
+    def spy(*a, **k):
+        seen.append((torch.get_num_threads(), numba_kernels.threads()))
+        if fail:
+            raise RuntimeError("render failed")
+        return real_render(*a, **k)
+
+    monkeypatch.setattr(trainer_module, "render", spy)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        losses = {}
+        for path in (False, "numba"):
+            tr = make_trainer(small_scene, tiny_cfg(pyramid=()))
+            tr.compiler.compiled = lambda path=path: path
+            losses[path] = tr.train_step()
+            assert torch.get_num_threads() == 2 and numba_kernels.threads() == 2
+        assert seen == [(2, 2), (1, 2)]
+        assert losses["numba"] == pytest.approx(losses[False], rel=1e-5)
+        fail.append(1)
+        with pytest.raises(RuntimeError, match="render failed"):
+            tr.train_step()
+        assert torch.get_num_threads() == 2 and numba_kernels.threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
 def test_state_dict_resume_is_exact(small_scene):
     full = make_trainer(small_scene, tiny_cfg())
     full.run()

@@ -20,7 +20,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ..render.numba_kernels import run_ranges
+from ..render.numba_kernels import run_ranges, threads
 from .losses import SSIM_C1, SSIM_C2, gaussian_window
 
 _STATE: dict = {}
@@ -52,7 +52,7 @@ def error() -> Optional[BaseException]:
 
 
 def _row_cuts(rows: int) -> list:
-    parts = max(1, min(4 * max(1, torch.get_num_threads()), rows // 16))
+    parts = max(1, min(4 * threads(), rows // 16))
     return [rows * k // parts for k in range(parts + 1)]
 
 

@@ -10,6 +10,7 @@ the trainer sees it: ``data.py``.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -22,6 +23,7 @@ import torch
 from ..errors import RecGSError
 from ..io.colmap import load_scene
 from ..model.gaussians import GaussianSet, init_from_points, num_sh_coeffs
+from ..render import numba_kernels
 from ..render.rasterizer import render
 from ..render.rowgrads import RowGrads
 from . import density, numba_ssim
@@ -179,10 +181,16 @@ class Trainer:
 
     # --- one step -----------------------------------------------------------------------
     def train_step(self) -> float:
+        self.compiler.note_step(self.step)
+        path = self.compiler.compiled()
+        # numba's path: its kernels get torch's threads, torch one (numba_kernels.own_threads)
+        with numba_kernels.own_threads() if path == "numba" else contextlib.nullcontext():
+            return self._train_step(path)
+
+    def _train_step(self, path) -> float:
         c = self.cfg
         level = self.level()
         index = self._next_view()
-        self.compiler.note_step(self.step)
         cam, img = self.data.view(index, level)
         for g in self.optimizer.param_groups:
             if g["name"] == "means":
@@ -191,7 +199,6 @@ class Trainer:
         rg = self.row_grads
         k = num_sh_coeffs(self.sh_degree)   # active SH coefficients, as in _sh()
         p = {n: rg.track(n, v, cols=k - 1 if n == "sh_rest" else None) for n, v in self.params.items()}
-        path = self.compiler.compiled()
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (p["sh_dc"], p["sh_rest"]),
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
                      background=torch.tensor(c.background, dtype=torch.float32), compiled=path, gather=rg)
