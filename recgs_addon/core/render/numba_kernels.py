@@ -22,10 +22,10 @@ Threads: the kernels are serial over a range of items and release the GIL; this 
 splits each call into ranges and runs them on as many threads as torch uses, or as
 :func:`set_threads` says (its own pool of plain threads, which sleep between calls).
 torch's OpenMP threads do not sleep at once: after each of torch's parallel operations they
-spin, and on a machine with no spare core they take the cores these kernels' threads need
-(two cores, two threads each: a training step with torch on one thread and the kernels on
-two took 0.077-0.091 s against 0.100-0.109 s at 59,733 Gaussians, 0.031-0.039 against
-0.048-0.050 s at 7,000). :func:`own_threads` gives the kernels torch's threads for a block.
+spin, and on a machine with no spare core they take the cores these kernels' threads need.
+:func:`own_threads` gives the kernels torch's threads for a block and torch one (the trainer's
+step on this path; two cores: 0.064 against 0.079 s a step at 59,733 Gaussians, 0.038 against
+0.047 s at 7,000, benchmarks/bench_train_step.py).
 
 The machine code is cached in ``NUMBA_CACHE_DIR`` (the trainer points it at RecGS's per-user
 cache folder); compiling it cold takes ~15 s of one core, once per machine and version.
@@ -45,9 +45,7 @@ import torch
 _STATE: dict = {}
 _POOL: dict = {}
 _LOCK = threading.Lock()
-
-
-_THREADS: dict = {"n": None}
+_THREADS: dict = {"n": None}   # set_threads' count (None: torch's)
 
 
 def threads() -> int:
@@ -91,7 +89,7 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 
 def run_ranges(fn: Callable[[int, int], None], bounds) -> None:
     """Call ``fn(lo, hi)`` for consecutive (lo, hi) pairs of ``bounds`` (a list of cut points),
-    on torch's thread count: the calling thread and workers pull ranges in order until none is
+    on :func:`threads` threads: the calling thread and workers pull ranges in order until none is
     left (so uneven ranges balance out). The calls touch disjoint outputs."""
     bounds = list(bounds)
     jobs = [(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
