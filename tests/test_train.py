@@ -249,7 +249,6 @@ def test_numba_path_takes_numba_ssim_with_the_same_loss(small_scene, monkeypatch
     assert losses["numba"] == pytest.approx(losses[False], rel=1e-5)
 
 
-
 def test_numba_path_step_gives_torch_threads_to_the_kernels(small_scene, monkeypatch):
     """On numba's path a step runs torch on one thread and numba's kernels on the threads torch
     had (numba_kernels.own_threads: torch's spinning OpenMP threads would take their cores),
@@ -284,6 +283,7 @@ def test_numba_path_step_gives_torch_threads_to_the_kernels(small_scene, monkeyp
         assert torch.get_num_threads() == 2 and numba_kernels.threads() == 2
     finally:
         torch.set_num_threads(before)
+
 
 def test_state_dict_resume_is_exact(small_scene):
     full = make_trainer(small_scene, tiny_cfg())

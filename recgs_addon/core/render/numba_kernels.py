@@ -19,8 +19,9 @@ Against the eager torch oracle (tests/test_rasterizer.py) the results differ by 
 summation order and by ``exp`` (both within 1 ulp).
 
 Threads: the kernels are serial over a range of items and release the GIL; this module
-splits each call into ranges and runs them on as many threads as torch uses, or as
-:func:`set_threads` says (its own pool of plain threads, which sleep between calls).
+splits each call into ranges and runs them on as many threads as torch uses, or inside
+:func:`own_threads` as many as torch had (its own pool of plain threads, which sleep between
+calls).
 torch's OpenMP threads do not sleep at once: after each of torch's parallel operations they
 spin, and on a machine with no spare core they take the cores these kernels' threads need.
 :func:`own_threads` gives the kernels torch's threads for a block and torch one (the trainer's
@@ -45,18 +46,13 @@ import torch
 _STATE: dict = {}
 _POOL: dict = {}
 _LOCK = threading.Lock()
-_THREADS: dict = {"n": None}   # set_threads' count (None: torch's)
+_THREADS: dict = {"n": None}   # own_threads' count (None: torch's)
 
 
 def threads() -> int:
-    """Threads the kernels run on: :func:`set_threads`'s count, else torch's."""
+    """Threads the kernels run on: inside :func:`own_threads` the count torch had, else torch's."""
     n = _THREADS["n"]
     return max(1, int(n) if n is not None else torch.get_num_threads())
-
-
-def set_threads(n: Optional[int]) -> None:
-    """Run the kernels on ``n`` threads (None: as many as torch uses)."""
-    _THREADS["n"] = n
 
 
 @contextmanager
