@@ -182,6 +182,8 @@ class Trainer:
     # --- one step -----------------------------------------------------------------------
     def train_step(self) -> float:
         self.compiler.note_step(self.step)
+        # before own_threads: a finished warm-up gives torch its core back in compiled(), and
+        # own_threads must read that count (its exit restores what it read)
         path = self.compiler.compiled()
         # numba's path: its kernels get torch's threads, torch one (numba_kernels.own_threads)
         with numba_kernels.own_threads() if path == "numba" else contextlib.nullcontext():
