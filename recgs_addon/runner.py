@@ -74,6 +74,12 @@ def add_train_arguments(p) -> None:
                         "the default for --mode 3dgs) or adc (INRIA's clone/split by screen gradient; the "
                         "default for the caustic modes)")
     p.add_argument("--downscale", type=int, default=1, help="train at image size / N")
+    p.add_argument("--max-side", type=int, default=None,
+                   help="long side of the training images at most this many pixels (default 1600, as the "
+                        "reference 3DGS code; 0 = the photos' own size): memory and step time grow with it")
+    p.add_argument("--max-memory", type=float, default=None,
+                   help="gigabytes the run may use (default: what the machine has free); a run that would need "
+                        "more is refused before it starts, and an automatic budget is capped to fit")
     p.add_argument("--sh-degree", type=int, default=3, choices=range(4), help="cap on the SH degree")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="cpu, cuda or mps (where torch has them)")
@@ -204,7 +210,7 @@ def run_train(args) -> int:
                 cfg.iterations = args.iterations
         else:
             cfg = preset(args.preset, iterations=args.iterations, max_minutes=args.max_minutes,
-                         downscale=args.downscale, sh_degree=args.sh_degree, seed=args.seed,
+                         downscale=args.downscale, max_side=args.max_side, sh_degree=args.sh_degree, seed=args.seed,
                          device=args.device, holdout_every=args.holdout_every,
                          budget=_parse_budget(args.budget), compiled=False if args.eager else (True if args.compile_first else None),
                          keep_best=False if args.keep_last else None,
@@ -225,7 +231,8 @@ def run_train(args) -> int:
             method.load_state_dict(state)
         # every image the run uses is read now, so a file that does not decode stops the job
         # before it writes anything (training would read them all anyway; they stay cached)
-        trainer.data.load_all(trainer.level())
+        trainer.data.load_all(trainer.level(), on_image=_reading_progress(time.perf_counter()))
+        plan = _plan(args, method, trainer)
     except RecGSError as exc:
         _emit("error", message=str(exc))
         print(f"error: {exc}", file=sys.stderr)
@@ -241,12 +248,43 @@ def run_train(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     try:
-        return _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator)
+        return _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator, plan)
     finally:
         lock.__exit__(None, None, None)
 
 
-def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator) -> int:
+def _reading_progress(t0: float):
+    """``on_image`` for ``TrainData.load_all``: a ``reading`` event every 5 % of the images, a
+    line on stderr every 10 seconds and at the end."""
+    said = [t0]
+
+    def on_image(done: int, total: int) -> None:
+        now = time.perf_counter()
+        if done == total or done % max(1, total // 20) == 0:
+            _emit("reading", done=done, total=total, elapsed=round(now - t0, 2))
+        if done == total or now - said[0] >= 10:
+            said[0] = now
+            print(f"read {done}/{total} images in {now - t0:.0f}s", file=sys.stderr, flush=True)
+    return on_image
+
+
+def _plan(args, method, trainer):
+    """The run's plan (``core/train/plan.py``): emitted as a ``plan`` event and printed before
+    any training; a run that cannot fit in memory is refused here (RecGSError)."""
+    from .core.train.plan import plan_run
+
+    limit = None if args.max_memory is None else int(args.max_memory * 2 ** 30)
+    if limit is not None and not limit > 0:
+        raise RecGSError(f"--max-memory must be a number of gigabytes above 0, got {args.max_memory}")
+    plan = plan_run(trainer, method.state_bytes(), limit)
+    lines = plan.lines()
+    _emit("plan", lines=lines, **plan.summary())
+    for line in lines:
+        print(line, file=sys.stderr, flush=True)
+    return plan
+
+
+def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator, plan) -> int:
     from .core.io.ply import write_gaussian_ply
     from .core.train.checkpoint import save_checkpoint
 
@@ -280,7 +318,8 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
 
     _emit("start", scene=str(args.scene_dir), out=str(out), resumed=bool(state), iteration=trainer.step,
           train_views=len(trainer.data.train_ids), test_views=len(trainer.data.test_ids),
-          gaussians=int(trainer.params["means"].shape[0]), allocator=allocator, config={**asdict(cfg), **asdict(ccfg)})
+          gaussians=int(trainer.params["means"].shape[0]), allocator=allocator, config={**asdict(cfg), **asdict(ccfg)},
+          plan=plan.summary())
     for message in trainer.compiler.messages:
         on_compile(message)
     trainer.compiler.log = on_compile

@@ -294,11 +294,11 @@ def test_baselines_train_and_estimate(caustic_scene, mode):
     free = [tr.decaustic_image(i) for i in ids]
     assert all(torch.isfinite(f).all() for f in free)
     if mode == "filter2d":  # the targets keep each image's mean and nothing else below k
-        for f, i in zip(free, ids):
+        for f, i in zip(free, ids):   # (kept as float16: exact to its rounding, 2^-11 of full scale)
             img = tr.data.view(i)[1]
             low = caustics.lowpass(f, tr.k)
-            assert torch.allclose(low, img.mean(dim=(0, 1), keepdim=True).expand_as(low), atol=1e-5)
-            assert torch.allclose(f - low, img - caustics.lowpass(img, tr.k), atol=1e-5)
+            assert torch.allclose(low, img.mean(dim=(0, 1), keepdim=True).expand_as(low), atol=5e-4)
+            assert torch.allclose(f - low, img - caustics.lowpass(img, tr.k), atol=5e-4)
     else:
         assert float(tr.fields.coef.detach().abs().sum()) > 0  # the fields learnt something
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from recgs_addon.core.errors import ImageError
-from recgs_addon.core.io.images import image_size, read_image, write_image
+from recgs_addon.core.io.images import image_size, read_image, training_size, write_image
 
 
 def _smooth(h=48, w=64):
@@ -80,3 +80,29 @@ def test_float_image_with_nan_or_inf_pixels_is_refused(tmp_path, bad):
         read_image(tmp_path / "hdr.exr")
     with pytest.raises(ImageError, match=r"hdr.exr: 3 pixels are NaN or infinite \(the first at x=3, y=2\)"):
         read_image(tmp_path / "hdr.exr", 2)
+
+
+def test_training_size_caps_the_long_side_and_keeps_the_aspect():
+    assert training_size(5600, 4200, 1, 1600) == (1600, 1200)
+    assert training_size(4200, 5600, 1, 1600) == (1200, 1600)          # portrait: the long side is the height
+    assert training_size(320, 240, 1, 1600) == (320, 240)             # small photos stay as they are
+    assert training_size(320, 240, 2, 1600) == (160, 120)
+    assert training_size(6000, 4000, 2, 1600) == (1600, 1067)         # downscale first, then the cap
+    assert training_size(6000, 4000, 1, 0) == (6000, 4000)            # 0: no cap
+
+
+def test_compact_read_keeps_8_bit_values_and_reduces_once(tmp_path):
+    a = _smooth(96, 128)
+    write_image(tmp_path / "a.png", a)
+    full = read_image(tmp_path / "a.png")
+    small = read_image(tmp_path / "a.png", compact=True)
+    assert small.dtype == np.uint8 and small.shape == (96, 128, 3)
+    assert np.allclose(small.astype(np.float32) / 255.0, full, rtol=0, atol=1e-7)   # the file's own 8-bit values
+    half = read_image(tmp_path / "a.png", size=(64, 48), compact=True)
+    ref = full.reshape(48, 2, 64, 2, 3).mean((1, 3))                  # area average, rounded to 8 bits
+    assert half.dtype == np.uint8 and np.abs(half / 255.0 - ref).max() <= 0.5 / 255 + 1e-6
+    write_image(tmp_path / "a.exr", 3.0 * a)                          # float files: float16, values kept
+    f16 = read_image(tmp_path / "a.exr", compact=True)
+    assert f16.dtype == np.float16 and np.abs(f16.astype(np.float32) - 3.0 * a).max() <= 3.0 * 2 ** -11
+    write_image(tmp_path / "hdr.exr", np.full((8, 8, 3), 1e6, np.float32))   # beyond float16: float32
+    assert read_image(tmp_path / "hdr.exr", compact=True).dtype == np.float32

@@ -726,3 +726,79 @@ def test_long_run_stays_finite():
     assert not bad, bad[:5]
     assert tr.skipped_steps == 0 and all(math.isfinite(v) for v in losses)
     assert np.mean(losses[-500:]) < np.mean(losses[:500])
+
+
+def test_photos_are_kept_compact_at_their_training_size(small_scene):
+    """Each photo is decoded once at its training size and kept as uint8 (a fourth of float32);
+    views hand out float32 in [0, 1] with the camera scaled to the image."""
+    from recgs_addon.core.io.images import read_image
+
+    tr = make_trainer(small_scene, tiny_cfg(max_side=20))        # the 40x30 photos, long side capped at 20
+    data = tr.data
+    data.load_all(2)
+    i = data.train_ids[0]
+    cam, img = data.view(i)
+    assert (cam.width, cam.height) == (20, 15) and img.shape == (15, 20, 3) and img.dtype == torch.float32
+    full = data.scene.cameras[i]
+    assert cam.fx == pytest.approx(full.fx / 2) and cam.cx == pytest.approx(full.cx / 2)
+    assert data.photo(i).dtype == torch.uint8
+    ref = read_image(data.scene.image_path(full), size=(20, 15))
+    assert np.abs(img.numpy() - ref).max() <= 0.5 / 255 + 1e-6     # the box filter's average, rounded to 8 bits
+    cam2, img2 = data.view(i, 2)                                    # the pyramid: area averages of that size
+    assert img2.shape == (8, 10, 3) and (cam2.width, cam2.height) == (10, 8)
+    photos = len(data.train_ids) + len(data.test_ids)
+    assert data.image_bytes() == photos * 15 * 20 * 3 + len(data.train_ids) * 8 * 10 * 3 * 4
+    assert make_trainer(small_scene, tiny_cfg()).data.camera(i).width == 40   # 1600 leaves small photos alone
+
+
+def test_dry_steps_time_the_step_and_change_nothing(small_scene):
+    from recgs_addon.core.train.plan import time_steps
+
+    tr = make_trainer(small_scene, tiny_cfg())
+    for _ in range(3):
+        tr.train_step()
+    before = tr.state_dict()
+    seconds, path = time_steps(tr, 2)
+    assert seconds > 0 and path == "eager"
+    after = tr.state_dict()
+    for n in before["params"]:
+        assert torch.equal(before["params"][n], after["params"][n]), n
+    assert all(p.grad is None for p in tr.params.values())
+    assert before["order"] == after["order"] and torch.equal(before["gen"], after["gen"])
+    assert before["np_rng"] == after["np_rng"] and before["step"] == after["step"]
+
+
+def test_job_says_its_plan_and_refuses_what_cannot_fit(small_scene, tmp_path):
+    """Before any training a job emits its plan (resolution, images, memory, time per 1,000
+    steps). Memory too small for the images themselves, or for a budget the user set: the
+    job refuses with one line naming the survey and saying what to do, and writes nothing."""
+    r = _run(_train_cmd(small_scene, tmp_path / "ok", "--iterations", "2"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    events = [json.loads(line) for line in r.stdout.splitlines()]
+    plan = next(e for e in events if e["event"] == "plan")
+    assert events.index(plan) < next(i for i, e in enumerate(events) if e["event"] == "start")
+    assert (plan["width"], plan["height"], plan["train_views"], plan["test_views"]) == (40, 30, 6, 2)
+    assert plan["seconds_per_1000"] > 0 and plan["peak_bytes"] > plan["image_bytes"] > 0
+    assert plan["lines"][0].startswith("training at 40x30: 6 training and 2 held-out views")
+    assert any(line.startswith("time: about") for line in plan["lines"])
+    for extra, msg in ((("--max-memory", "0.01"), "need about"),
+                       (("--max-memory", "4", "--budget", "10000000"), "ask for at most")):
+        out = tmp_path / f"refused{len(extra)}"
+        r = _run(_train_cmd(small_scene, out, "--iterations", "2", *extra))
+        assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-2000:]
+        err = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+        assert len(err) == 1 and msg in err[0] and str(small_scene) in err[0], err
+        assert not out.exists()
+
+
+def test_plan_caps_an_automatic_budget_to_the_memory_there_is(small_scene):
+    from recgs_addon.core.train import plan as planning
+
+    tr = make_trainer(small_scene, tiny_cfg(pixels_per_gaussian=0.01))   # an automatic budget of 720,000
+    tr.data.load_all()
+    n, auto = int(tr.params["means"].shape[0]), tr.budget
+    assert auto == 720_000
+    fixed = planning.estimate_peak(planning.resident_bytes(), 40 * 30, 0, 3, n, n)
+    p = planning.plan_run(tr, limit_bytes=fixed + planning.gaussian_bytes(3) * 100_000, warmup_steps=0)
+    assert p.budget_capped_from == auto and 90_000 < p.budget == tr.budget < 110_000
+    assert "capped at" in p.lines()[-1]

@@ -86,6 +86,7 @@ class VIEW3D_PT_recgs_training(_RecGSPanel, bpy.types.Panel):
         sub.enabled = not s.budget_auto
         sub.prop(s, "budget", text="Budget")
         col.prop(s, "downscale")
+        col.prop(s, "max_side")
         sub = col.row()
         sub.active = s.mode in CAUSTIC_MODES
         sub.prop(s, "caustic_k")
@@ -119,6 +120,10 @@ def draw_progress(layout, s) -> None:
         col.label(text=f"Gaussians: {s.gaussians:,}")
         col.label(text=f"Elapsed: {training.format_seconds(s.elapsed)}, remaining: "
                        + (training.format_seconds(s.eta) if s.eta >= 0 else "unknown"))
+    if s.plan and s.job_kind == "train":
+        col = box.column(align=True)
+        for line in s.plan.splitlines():
+            col.label(text=line)
     if s.message:
         col = box.column()
         col.alert = s.status == "FAILED"

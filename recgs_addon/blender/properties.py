@@ -56,6 +56,9 @@ class RecGSSettings(bpy.types.PropertyGroup):
                         description="Maximum number of Gaussians")
     downscale: IntProperty(name="Downscale", default=1, min=1, max=32,
                            description="Train at the photo size divided by this")
+    max_side: IntProperty(name="Max Image Side", default=1600, min=0, soft_max=8192,
+                          description="Long side of the training images at most this many pixels "
+                                      "(0 = the photos' own size); memory and step time grow with it")
     caustic_k: IntProperty(name="Caustic Filter Size", default=0, min=0, max=63, step=2,
                            description="Side of the kept low-frequency block of the caustic filter: "
                                        "0 = chosen from the residual spectrum (default); odd sizes "
@@ -91,6 +94,8 @@ class RecGSSettings(bpy.types.PropertyGroup):
     eta: FloatProperty(name="Remaining", default=-1.0, description="seconds; negative: unknown")
     progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
     message: StringProperty(name="Message")
+    plan: StringProperty(name="Plan", description="What the job said it will need before it started "
+                                                  "(resolution, memory, time per 1,000 steps), one line each")
 
 
 def train_options(s: RecGSSettings) -> dict:
@@ -100,7 +105,7 @@ def train_options(s: RecGSSettings) -> dict:
         "max_minutes": s.max_minutes if s.max_minutes > 0 else None,
         "iterations": s.iterations if s.iterations > 0 else None,
         "budget": "auto" if s.budget_auto else s.budget,
-        "downscale": s.downscale, "sh_degree": s.sh_degree, "seed": s.seed,
+        "downscale": s.downscale, "max_side": s.max_side, "sh_degree": s.sh_degree, "seed": s.seed,
         "holdout_every": s.holdout_every, "checkpoint_every": s.checkpoint_every,
         "device": s.device if s.device and s.device != "cpu" else None,
         "images": s.images if s.images and s.images != "images" else None,
@@ -110,13 +115,14 @@ def train_options(s: RecGSSettings) -> dict:
 
 
 #: ``train`` options (argparse dests) that the settings hold; see :func:`apply_train_args`.
-SETTINGS_OPTIONS = ("mode", "preset", "max_minutes", "iterations", "budget", "downscale", "sh_degree", "seed",
+SETTINGS_OPTIONS = ("mode", "preset", "max_minutes", "iterations", "budget", "downscale", "max_side",
+                    "sh_degree", "seed",
                     "holdout_every", "checkpoint_every", "device", "eager", "caustic_k", "images")
 
 
 def apply_train_args(s: RecGSSettings, args) -> None:
     """Copy parsed ``train`` arguments (an argparse namespace) into the settings."""
-    for key in ("mode", "preset", "downscale", "sh_degree", "seed", "holdout_every", "checkpoint_every",
+    for key in ("mode", "preset", "downscale", "max_side", "sh_degree", "seed", "holdout_every", "checkpoint_every",
                 "device", "eager", "caustic_k"):
         if getattr(args, key, None) is not None:
             setattr(s, key, getattr(args, key))

@@ -119,7 +119,7 @@ def _begin(job: jobs.Job, scene, **names) -> ActiveJob:
     global _active
     _active = ActiveJob(job, scene.name, **names)
     s = scene.recgs
-    s.status, s.job_kind, s.phase, s.message = "RUNNING", job.kind, "starting", ""
+    s.status, s.job_kind, s.phase, s.message, s.plan = "RUNNING", job.kind, "starting", "", ""
     s.iteration, s.progress, s.elapsed, s.eta, s.psnr_test = 0, 0.0, 0.0, -1.0, -1.0
     _ui_begin()
     if not bpy.app.timers.is_registered(pump):
@@ -289,6 +289,10 @@ def _apply(a: ActiveJob, s, ev: dict) -> None:
         elif kind == "done":
             s.message = (f"registered {ev.get('registered')}/{ev.get('images')} photos, "
                          f"{ev.get('points')} points")
+    elif kind == "reading":
+        s.phase = f"reading images {ev.get('done', 0)}/{ev.get('total', 0)}"
+    elif kind == "plan":
+        s.plan = "\n".join(str(line) for line in ev.get("lines", []))
     elif kind == "start":
         s.iteration, s.gaussians = int(ev.get("iteration") or 0), int(ev.get("gaussians") or 0)
     elif kind == "progress":

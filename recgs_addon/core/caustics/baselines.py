@@ -32,11 +32,14 @@ class Filter2D(Method):
             imgs = [data.view(i, 1)[1] for i in data.train_ids]
             self.k = fft_filter.choose_k([m - m.mean(dim=(0, 1), keepdim=True) for m in imgs])
         for i in data.train_ids:
-            self.targets.images[i] = fft_filter.filter2d(data.view(i, 1)[1], self.k)
+            self.targets.put(i, fft_filter.filter2d(data.view(i, 1)[1], self.k))
         trainer.set_objective(self.targets)
 
     def decaustic_image(self, index: int) -> torch.Tensor:
-        return self.targets.images[index]
+        return self.targets.get(index)
+
+    def state_bytes(self) -> int:
+        return self.targets.bytes_per_pixel() * self.data.training_pixels()
 
     def summary(self) -> dict:
         return {**super().summary(), "caustic_k": self.k}
@@ -96,17 +99,18 @@ class CausticFields(torch.nn.Module):
         super().__init__()
         self.r = fft_filter.check_k(k)
         self.k = k
-        self.coef = torch.nn.Parameter(torch.zeros(n_images, channels, k, k, 2))
+        self.coef = torch.nn.Parameter(torch.zeros(n_images, channels, k, k, 2, device="cpu"))
 
     def field(self, index: int, height: int, width: int) -> torch.Tensor:
         """(H, W, C) field of image ``index``."""
         r = self.r
-        f = torch.arange(-r, r + 1)
+        dev = self.coef.device
+        f = torch.arange(-r, r + 1, device=dev)
         rows = torch.remainder(f, height)
         cols = torch.remainder(f, width)
         coef = torch.view_as_complex(self.coef[index])  # (C, k, k)
         c = coef.shape[0]
-        spec = torch.zeros(c, height * width, dtype=coef.dtype)
+        spec = torch.zeros(c, height * width, dtype=coef.dtype, device=dev)
         flat = (rows.unsqueeze(1) * width + cols.unsqueeze(0)).reshape(-1)
         spec = spec.index_add(1, flat, coef.reshape(c, -1))
         out = torch.fft.ifft2(spec.view(c, height, width), norm="forward").real

@@ -40,7 +40,8 @@ STATS = ("mean", "median", "min", "quantile")
 def backproject(depth: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     """(H, W, 3) world points of the pixel centres at camera-space depth ``depth`` (H, W)."""
     h, w = depth.shape
-    v, u = torch.meshgrid(torch.arange(h, dtype=depth.dtype) + 0.5, torch.arange(w, dtype=depth.dtype) + 0.5,
+    v, u = torch.meshgrid(torch.arange(h, dtype=depth.dtype, device=depth.device) + 0.5,
+                          torch.arange(w, dtype=depth.dtype, device=depth.device) + 0.5,
                           indexing="ij")
     x = (u - K[0, 2]) / K[0, 0] * depth
     y = (v - K[1, 2]) / K[1, 1] * depth
@@ -146,7 +147,7 @@ def median_log_gradients(samples: torch.Tensor, valid: torch.Tensor, eps: float 
     log-image gradients is the reflectance's). ``samples`` (V, H, W, 3), ``valid`` (V, H, W).
     Returns (gx, gy), each (H, W, 3), 0 where no view has both pixels of a difference."""
     log = torch.log(samples.clamp_min(0) + eps)
-    nan = torch.tensor(float("nan"), dtype=log.dtype)
+    nan = torch.tensor(float("nan"), dtype=log.dtype, device=log.device)
     vx = (valid[:, :, 1:] & valid[:, :, :-1]).unsqueeze(-1)
     vy = (valid[:, 1:] & valid[:, :-1]).unsqueeze(-1)
     mx = torch.nanmedian(torch.where(vx, log[:, :, 1:] - log[:, :, :-1], nan), 0).values
@@ -184,9 +185,10 @@ def gain_by_count(photos: list[torch.Tensor], stats: list[torch.Tensor], counts:
     for p, s, c in zip(photos, stats, counts):
         for n in torch.unique(c).tolist():
             m = c == n
-            acc = sums.setdefault(int(n), [torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), 0])
-            acc[0] += p[m].double().sum(0)
-            acc[1] += s[m].double().sum(0)
+            acc = sums.setdefault(int(n), [torch.zeros(3, dtype=torch.float64, device="cpu"),
+                                           torch.zeros(3, dtype=torch.float64, device="cpu"), 0])
+            acc[0] += p[m].double().sum(0).cpu()
+            acc[1] += s[m].double().sum(0).cpu()
             acc[2] += int(m.sum())
     ok = {n: (a[0] / a[1].clamp_min(1e-12)).float() for n, a in sums.items() if a[2] >= min_pixels}
     if not ok:

@@ -121,19 +121,20 @@ def radial_power(residuals: list[torch.Tensor], r_max: int) -> torch.Tensor:
     Each image's spectrum is normalised by its pixel count, so images of different sizes
     weigh the same. Returns (r_max + 1,) float64.
     """
-    acc = torch.zeros(r_max + 1, dtype=torch.float64)
-    cnt = torch.zeros(r_max + 1, dtype=torch.float64)
+    dev = residuals[0].device if residuals else "cpu"
+    acc = torch.zeros(r_max + 1, dtype=torch.float64, device=dev)
+    cnt = torch.zeros(r_max + 1, dtype=torch.float64, device=dev)
     for res in residuals:
         h, w, _ = res.shape
         spec = torch.fft.fft2(res.permute(2, 0, 1).to(torch.float64)) / (h * w)
         power = (spec.abs() ** 2).sum(0)
-        fy = torch.fft.fftfreq(h, 1.0 / h).abs().round().long()
-        fx = torch.fft.fftfreq(w, 1.0 / w).abs().round().long()
+        fy = torch.fft.fftfreq(h, 1.0 / h, device=dev).abs().round().long()
+        fx = torch.fft.fftfreq(w, 1.0 / w, device=dev).abs().round().long()
         ring = torch.maximum(fy.unsqueeze(1), fx.unsqueeze(0))
         keep = ring <= r_max
         acc.index_add_(0, ring[keep], power[keep])
         cnt.index_add_(0, ring[keep], torch.ones_like(power[keep]))
-    return acc / cnt.clamp_min(1)
+    return (acc / cnt.clamp_min(1)).cpu()
 
 
 def choose_k(residuals: list[torch.Tensor], k_min: int = 5, k_max: int = 25, ratio: float = 4.0) -> int:

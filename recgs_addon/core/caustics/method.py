@@ -38,6 +38,10 @@ class Method:
         methods that make none."""
         return None
 
+    def state_bytes(self) -> int:
+        """Memory the method's per-view state (caustic maps, targets) takes at its largest."""
+        return 0
+
     def summary(self) -> dict:
         """What the method adds to a run's metrics."""
         return {"best_step": self.trainer.best_step}

@@ -66,7 +66,7 @@ class RecGS(Method):
         trainer.set_objective(self.targets)
         self.gain: Optional[list] = None    # the colour gain applied at the end (gain_restore)
         #: lightfield: the survey's linear gain from the floor light to the mean light (3,)
-        self.light_gain = torch.ones(3)
+        self.light_gain = torch.ones(3, device="cpu")
         self.maps: dict[int, torch.Tensor] = {}  # C or log-gain per training view (full res)
         self.recurrence = 0
         self.rec_history: list[dict] = []
@@ -131,14 +131,15 @@ class RecGS(Method):
     def decaustic_image(self, index: int) -> torch.Tensor:
         image = self.data.view(index, 1)[1]
         cmap = self.maps.get(index)
-        return image if cmap is None else self._decaustic(image, cmap)
+        return image if cmap is None else self._decaustic(image, cmap.float())
 
     def _set_maps(self, maps: dict[int, torch.Tensor]) -> None:
-        """Use these estimates: each training view now fits its caustic-free image."""
-        self.maps = maps
+        """Use these estimates: each training view now fits its caustic-free image. The maps
+        are kept as float16, as the targets are (``FixedTargets``)."""
+        self.maps = {i: m.to(torch.float16) for i, m in maps.items()}
         self.targets.clear()
-        for i, m in maps.items():
-            self.targets.images[i] = self._decaustic(self.data.view(i, 1)[1], m)
+        for i, m in self.maps.items():   # from the kept maps, so a resumed run sets the same targets
+            self.targets.put(i, self._decaustic(self.data.view(i, 1)[1], m.float()))
 
     # --- the recurrence --------------------------------------------------------------------
     @torch.no_grad()
@@ -156,7 +157,7 @@ class RecGS(Method):
                 new = self._light_field_maps(renders)
             else:
                 new = {i: self._estimate(self.data.view(i, 1)[1], renders[i], self.k) for i in ids}
-        old = [self.maps.get(i, torch.zeros_like(new[i])) for i in ids]
+        old = [self.maps[i].float() if i in self.maps else torch.zeros_like(new[i]) for i in ids]
         change = fft_filter.caustic_change([new[i] for i in ids], old)
         self._set_maps(new)
         self.recurrence += 1
@@ -284,7 +285,7 @@ class RecGS(Method):
         on from the current model and its Adam state, so no steps are thrown away."""
         if restore:
             self.trainer.restore(self.plain)
-        self.light_gain = torch.ones(3)
+        self.light_gain = torch.ones(3, device="cpu")
         self._set_maps({})  # targets = the captured images
         self.misses = 0
         self.drop_reason = why
@@ -357,6 +358,10 @@ class RecGS(Method):
         if self.rec_history:
             p.extra.update(recurrence=self.recurrence, c_change=self.rec_history[-1]["c_change"])
         return p
+
+    def state_bytes(self) -> int:
+        """The maps and the targets, float16 (H, W, 3) each, of every training view."""
+        return (6 + self.targets.bytes_per_pixel()) * self.data.training_pixels()
 
     def summary(self) -> dict:
         return {**super().summary(), "caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,

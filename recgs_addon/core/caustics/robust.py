@@ -63,8 +63,8 @@ class TrimmedTargets(FixedTargets):
 @torch.no_grad()
 def colour_gain(pairs) -> torch.Tensor:
     """(3,) per-channel ratio sum(photo) / sum(render) over ``pairs`` of (photo, render)."""
-    num = torch.zeros(3, dtype=torch.float64)
-    den = torch.zeros(3, dtype=torch.float64)
+    num = torch.zeros(3, dtype=torch.float64, device="cpu")
+    den = torch.zeros(3, dtype=torch.float64, device="cpu")
     for photo, render in pairs:
         num += photo.double().sum(dim=(0, 1)).cpu()
         den += render.clamp_min(0).double().sum(dim=(0, 1)).cpu()

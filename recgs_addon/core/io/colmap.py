@@ -61,9 +61,11 @@ class Scene:
     def image_path(self, camera: Camera) -> Path:
         return self.image_dir / camera.name
 
-    def load_image(self, camera: Camera, downscale: int = 1) -> np.ndarray:
-        """(H, W, 3) float32 image of ``camera`` (see :func:`.images.read_image`)."""
-        return read_image(self.image_path(camera), downscale)
+    def load_image(self, camera: Camera, downscale: int = 1, size: tuple[int, int] | None = None,
+                   compact: bool = False) -> np.ndarray:
+        """(H, W, 3) image of ``camera``: float32, or uint8 / float16 with ``compact``; at
+        ``size`` (width, height) or the file's size / ``downscale`` (see :func:`.images.read_image`)."""
+        return read_image(self.image_path(camera), downscale, size=size, compact=compact)
 
     def extent(self) -> float:
         """Scene radius as INRIA defines it: 1.1 x the largest camera distance to their centroid."""

@@ -34,7 +34,7 @@ def blending_weights(trainer, index: int) -> torch.Tensor:
 
 def view_support(trainer, min_weight: float = 1.0) -> np.ndarray:
     """(N,) int: the number of training views that carry each Gaussian."""
-    count = torch.zeros(trainer.params["means"].shape[0], dtype=torch.int64)
+    count = torch.zeros(trainer.params["means"].shape[0], dtype=torch.int64, device="cpu")
     for i in trainer.data.train_ids:
         count += (blending_weights(trainer, i) >= min_weight).cpu()
     return count.numpy()

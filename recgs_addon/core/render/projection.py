@@ -292,7 +292,7 @@ def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, wid
             *(x.detach().index_select(0, cand).to(f64) for x in (means, log_scales, quats, logit_opacities)),
             vm, Kd, width, height, near, antialiased)
         ok = info[:, 0] > 0
-        radii = torch.zeros(means.shape[0], dtype=torch.int32)
+        radii = torch.zeros(means.shape[0], dtype=torch.int32, device=means.device)
         radii[cand] = torch.where(ok, torch.ceil(info[:, 13]), torch.zeros_like(info[:, 13])).to(torch.int32)
         vis = torch.nonzero(ok).squeeze(1)
         # cand is increasing, so the stable sort still breaks depth ties by Gaussian index

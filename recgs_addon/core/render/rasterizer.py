@@ -324,9 +324,9 @@ class _Plan:
 
 def _expand(counts: torch.Tensor):
     """For counts (n,): (owner (sum,), local index 0..count-1 within its owner (sum,))."""
-    owner = torch.repeat_interleave(torch.arange(counts.shape[0]), counts)
+    owner = torch.repeat_interleave(torch.arange(counts.shape[0], device=counts.device), counts)
     start = torch.cumsum(counts, 0) - counts
-    return owner, torch.arange(owner.shape[0]) - start.index_select(0, owner)
+    return owner, torch.arange(owner.shape[0], device=counts.device) - start.index_select(0, owner)
 
 
 def _row_spans(trow, ts: int, bbox, u, v, cov2d, extent):
@@ -390,13 +390,13 @@ def _build_plan(proj, width: int, height: int, tile_size: int, chunk_pairs: int,
     m = rows.shape[0]
     plan = _Plan(width, height, ts, tiles_x, tiles_y, n_vis, intersections=m)
     if m == 0:
-        plan.slot_rows = torch.zeros(0, dtype=torch.int64)
-        plan.slot_tiles = torch.zeros(0, dtype=torch.int64)
+        plan.slot_rows = torch.zeros(0, dtype=torch.int64, device=rows.device)
+        plan.slot_tiles = torch.zeros(0, dtype=torch.int64, device=rows.device)
         return plan
     # Rows are in depth order, so a stable sort by tile gives (tile, depth) order.
     # int32 keys: torch's stable CPU sort is a radix sort for them (~20x faster than int64).
     tile_sorted, perm = torch.sort(tile.to(torch.int32), stable=True)
-    rows_ext = torch.cat([rows.index_select(0, perm), torch.tensor([n_vis])])
+    rows_ext = torch.cat([rows.index_select(0, perm), torch.tensor([n_vis], device=rows.device)])
     tile_count = torch.bincount(tile_sorted, minlength=n_tiles)
     tile_start = torch.cumsum(tile_count, 0) - tile_count
     # Chunks of tiles with similar list lengths (longest first) keep padding small.
@@ -413,7 +413,7 @@ def _build_plan(proj, width: int, height: int, tile_size: int, chunk_pairs: int,
         g = counts_list[i]
         tc = max(1, min(n_nonempty - i, chunk_pairs // (npix * g)))
         tiles = order[i:i + tc]
-        ar = torch.arange(g)
+        ar = torch.arange(g, device=rows.device)
         slots = tile_start.index_select(0, tiles).unsqueeze(1) + ar
         slots = torch.where(ar < counts_sorted[i:i + tc].unsqueeze(1), slots,
                             torch.full_like(slots, m))
@@ -446,9 +446,9 @@ def _slot_tables_compiled(*args):
         return _KERNEL_CACHE["slots"](*args)
 
 
-def _pixel_offsets(tile_size: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+def _pixel_offsets(tile_size: int, dtype, device=None) -> tuple[torch.Tensor, torch.Tensor]:
     """(P,) x and y of the pixel centres of a tile, relative to the tile centre."""
-    p = torch.arange(tile_size * tile_size)
+    p = torch.arange(tile_size * tile_size, device=device)
     half = 0.5 * tile_size
     return ((p % tile_size).to(dtype) + 0.5 - half, (p // tile_size).to(dtype) + 0.5 - half)
 
@@ -485,9 +485,9 @@ class _Composite(torch.autograd.Function):
         slot_fn = _slot_tables_compiled if kern.compiled else _slot_tables
         tab = slot_fn(sr, st, pos, per_row, plan.tiles_x, ts)
         geo, vals = tab[:_N_GEOM], tab[_N_GEOM:]
-        pxl, pyl = _pixel_offsets(ts, dtype)
+        pxl, pyl = _pixel_offsets(ts, dtype, values.device)
         n_tiles = plan.tiles_x * plan.tiles_y
-        acc = torch.zeros(n_c, n_tiles, ts * ts, dtype=dtype)
+        acc = torch.zeros(n_c, n_tiles, ts * ts, dtype=dtype, device=values.device)
         state = []
         for tiles, tc, g, off in plan.chunks:
             geo_c = geo[:, off:off + tc * g].view(_N_GEOM, tc, g)
@@ -514,15 +514,16 @@ class _Composite(torch.autograd.Function):
         n_c = vals.shape[0]
         ts = plan.tile_size
         hp, wp = plan.tiles_y * ts, plan.tiles_x * ts
-        g_pad = torch.zeros(hp, wp, n_c, dtype=dtype)
+        dev = g_img.device
+        g_pad = torch.zeros(hp, wp, n_c, dtype=dtype, device=dev)
         g_pad[:plan.height, :plan.width] = g_img
         g_tiles = g_pad.view(plan.tiles_y, ts, plan.tiles_x, ts, n_c).permute(4, 0, 2, 1, 3)
         g_tiles = g_tiles.reshape(n_c, plan.tiles_y * plan.tiles_x, ts * ts)
-        pxl, pyl = _pixel_offsets(ts, dtype)
+        pxl, pyl = _pixel_offsets(ts, dtype, dev)
         n_vis = ctx.n_vis
         n_slots = geo.shape[1]
         # Per-slot gradients, planar: rows 0..5 geometry, 6.. values.
-        d_slot = torch.empty(_N_GEOM + n_c, n_slots, dtype=dtype)
+        d_slot = torch.empty(_N_GEOM + n_c, n_slots, dtype=dtype, device=dev)
         for k, (tiles, tc, g, off) in enumerate(plan.chunks):
             geo_c = geo[:, off:off + tc * g].view(_N_GEOM, tc, g)
             vals_c = vals[:, off:off + tc * g].view(n_c, tc, g)
@@ -535,10 +536,10 @@ class _Composite(torch.autograd.Function):
             d_slot[:_N_GEOM, off:off + tc * g] = dg.reshape(_N_GEOM, -1)
             d_slot[_N_GEOM:, off:off + tc * g] = dv.reshape(n_c, -1)
         ctx.state = None
-        d_rows = torch.zeros(_N_GEOM + n_c, n_vis + 1, dtype=dtype)
+        d_rows = torch.zeros(_N_GEOM + n_c, n_vis + 1, dtype=dtype, device=dev)
         d_rows.index_add_(1, plan.slot_rows, d_slot)
         d_rows = d_rows[:, :n_vis]
-        d_means2d = torch.zeros(ctx.n, 2, dtype=dtype)
+        d_means2d = torch.zeros(ctx.n, 2, dtype=dtype, device=dev)
         d_means2d.index_copy_(0, ids, d_rows[0:2].t())
         return (d_means2d, d_rows[2:5].t(), d_rows[5], d_rows[_N_GEOM:].t(),
                 None, None, None, None, None)
@@ -714,12 +715,12 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
     if sh_degree is None:
         sh_degree = int(round(math.sqrt(sum(b.shape[1] for b in blocks)))) - 1
     if background is None:
-        background = torch.zeros(3, dtype=dtype)
-    background = background.to(dtype)
+        background = torch.zeros(3, dtype=dtype, device=means.device)
+    background = background.to(device=means.device, dtype=dtype)
 
     if gather is None:
         gather = _index_rows
-    if kern.numba is not None and all(x.dtype == torch.float32 for x in
+    if kern.numba is not None and means.device.type == "cpu" and all(x.dtype == torch.float32 for x in
                                       (means, log_scales, quats, logit_opacities)):
         if not near > 0:
             raise ValueError(f"near must be > 0, got {near}")
@@ -744,8 +745,8 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
     sh_vis = torch.cat([gather(b, ids) for b in blocks if b.shape[1]], 1)
     colours = _sh_fn(kern.compiled)(sh_degree, sh_vis.to(dtype), dirs.to(dtype))
     values = torch.cat([colours, proj.depth.to(dtype).unsqueeze(1),
-                        torch.ones(ids.shape[0], 1, dtype=dtype)], dim=1)
-    means2d = torch.zeros(n, 2, dtype=dtype).index_copy(0, ids, proj.means2d.to(dtype))
+                        torch.ones(ids.shape[0], 1, dtype=dtype, device=means.device)], dim=1)
+    means2d = torch.zeros(n, 2, dtype=dtype, device=means.device).index_copy(0, ids, proj.means2d.to(dtype))
     if means2d.requires_grad:
         means2d.retain_grad()
 

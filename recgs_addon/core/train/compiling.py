@@ -243,9 +243,14 @@ class CompileSwitch:
         self._threads: Optional[int] = None   # the trainer's thread count, while one is lent out
         if requested is False:
             self.state = "eager"
-        elif requested is True or device != "cpu":   # GPUs compile with their own toolchain
+        elif requested is True:
             use_user_cache()
             self.state = "compiled"
+        elif str(device) != "cpu":
+            # numba's kernels are CPU code; the eager path runs on any torch device (the meta
+            # device check in tests/test_device.py), torch.compile on a GPU only when asked for
+            self.state, self.reason = "eager", f"device {device}"
+            self._say(f"device {device}: training on the eager path (numba's kernels run on the CPU only)")
         else:
             self._automatic(max_degree)
 

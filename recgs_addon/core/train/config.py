@@ -24,7 +24,9 @@ class TrainConfig:
     iterations: int = 30_000            # upper bound on optimisation steps
     max_minutes: Optional[float] = None  # wall-clock limit (None: none)
     budget: Optional[int] = None         # max Gaussians; None = "auto" (stop growth on plateau)
-    downscale: int = 1                   # training resolution = image size / downscale
+    downscale: int = 1                   # training resolution = image size / downscale ...
+    max_side: int = 1600                 # ... its long side at most this many pixels (0: no cap; the
+                                         # reference 3DGS code caps at 1600 too: a 24 MP photo trains at 1600x1200)
     sh_degree: int = 3                   # cap on the SH degree
     sh_policy: str = "probation"         # "probation" (raise only if it helps) | "schedule" (INRIA)
     sh_every: int = 1000                 # "schedule": +1 degree every this many steps
@@ -74,12 +76,16 @@ class TrainConfig:
         """The config saved in a checkpoint (``asdict`` form). Keys that are not trainer
         settings (a method's own, which older checkpoints kept in the same dict) are ignored."""
         d = {k: v for k, v in d.items() if k in cls.__dataclass_fields__}
+        d.setdefault("max_side", 0)   # checkpoints from before the cap trained at the photos' size
         return cls(**{**d, "pyramid": tuple(tuple(x) for x in d["pyramid"]), "background": tuple(d["background"])})
 
     def validate(self) -> None:
         """Refuse settings no run can use (called before any data is read)."""
         if self.downscale < 1:
             raise RecGSError(f"downscale must be an integer >= 1, got {self.downscale}")
+        if self.max_side < 0 or (0 < self.max_side < 8):
+            raise RecGSError(f"the training image's long side must be 0 (the photos' own size) or at least "
+                             f"8 pixels, got {self.max_side}")
         if self.budget is not None and self.budget < 1:
             raise RecGSError(f"budget must be at least 1 Gaussian, got {self.budget}")
         if self.iterations < 1:

@@ -3,13 +3,16 @@ by sorted name (LLFF) and keeps an image pyramid for coarse-to-fine training.
 """
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import torch
 
 from ..errors import RecGSError
 from ..io.colmap import Scene
+from ..io.images import training_size
 from ..model.cameras import Camera
 
 #: Smallest image side (pixels) accepted after downscaling.
@@ -27,68 +30,119 @@ def holdout_split(names: list[str], every: int) -> tuple[list[int], list[int]]:
     return train, test
 
 
+def as_float(image: torch.Tensor) -> torch.Tensor:
+    """A compact image (uint8 0-255, or float16) as float32 in [0, 1] intensity."""
+    if image.dtype == torch.uint8:
+        return image.float().div_(255.0)
+    return image.float()
+
+
 class TrainData:
     """Cameras and images of a survey for training and evaluation.
 
-    Images are read once per pyramid level (OIIO box filter) and kept as (H, W, 3) float32
-    tensors. Cameras are scaled to match each level.
+    Every photo is decoded once, at its training size (the file's size divided by
+    ``downscale``, its long side capped at ``max_side``; :func:`~..io.images.training_size`),
+    and kept compact: uint8 for 8-bit files, float16 otherwise. :meth:`view` hands out float32
+    copies; the coarse levels of the pyramid are area averages of the training size, kept
+    while in use. Cameras are scaled to match each level.
     """
 
     def __init__(self, scene: Scene, downscale: int, holdout_every: int, device: str = "cpu",
-                 gt_scene: Optional[Scene] = None):
+                 gt_scene: Optional[Scene] = None, max_side: int = 0):
         self.scene = scene
         self.gt_scene = gt_scene
         self.downscale = downscale
+        self.max_side = max_side
         self.device = device
         names = [c.name for c in scene.cameras]
         self.train_ids, self.test_ids = holdout_split(names, holdout_every)
         if not self.train_ids:
             raise RecGSError(f"{scene.image_dir}: no training images left after holding out every "
                              f"{holdout_every}th image")
-        for cam in scene.cameras:
-            w, h = round(cam.width / downscale), round(cam.height / downscale)
+        self.sizes = [training_size(c.width, c.height, downscale, max_side) for c in scene.cameras]
+        for cam, (w, h) in zip(scene.cameras, self.sizes):
             if min(w, h) < MIN_IMAGE_SIDE:
                 raise RecGSError(f"{scene.image_path(cam)}: downscale {downscale} would make this "
                                  f"{cam.width}x{cam.height} image {w}x{h}, below {MIN_IMAGE_SIDE} px")
-        self._cache: dict[tuple[int, int], tuple[Camera, torch.Tensor]] = {}
+        self._photos: dict[int, torch.Tensor] = {}     # compact, at the training size
+        self._gt: dict[int, torch.Tensor] = {}
+        self._levels: dict[tuple[int, int], torch.Tensor] = {}   # float32, coarser levels
+
+    def camera(self, index: int, level: int = 1) -> Camera:
+        """Camera ``index`` scaled to its training size at extra downscale ``level``."""
+        w, h = self.sizes[index]
+        if level != 1:
+            w, h = max(1, round(w / level)), max(1, round(h / level))
+        return self.scene.cameras[index].resized(w, h)
+
+    def _decode(self, scene: Scene, index: int) -> torch.Tensor:
+        img = scene.load_image(scene.cameras[index], size=self.sizes[index], compact=True)
+        return torch.from_numpy(img).to(self.device)
+
+    def photo(self, index: int) -> torch.Tensor:
+        """The compact photo (H, W, 3) of camera ``index`` at its training size."""
+        if index not in self._photos:
+            self._photos[index] = self._decode(self.scene, index)
+        return self._photos[index]
 
     def view(self, index: int, level: int = 1) -> tuple[Camera, torch.Tensor]:
-        """(camera, image (H, W, 3)) of camera ``index`` at extra downscale ``level``."""
+        """(camera, image (H, W, 3) float32) of camera ``index`` at extra downscale ``level``."""
+        cam = self.camera(index, level)
+        if level == 1:
+            return cam, as_float(self.photo(index))
         key = (index, level)
-        if key not in self._cache:
-            cam = self.scene.cameras[index]
-            f = self.downscale * level
-            img = self.scene.load_image(cam, downscale=f)
-            self._cache[key] = (cam.resized(img.shape[1], img.shape[0]), torch.from_numpy(img).to(self.device))
-        return self._cache[key]
+        if key not in self._levels:
+            self._levels[key] = resample(as_float(self.photo(index)), cam.height, cam.width)
+        return cam, self._levels[key]
 
     def gt_view(self, index: int) -> Optional[torch.Tensor]:
-        """Ground-truth image (H, W, 3) of camera ``index`` at the training resolution, if any."""
+        """Ground-truth image (H, W, 3) float32 of camera ``index`` at the training size, if any."""
         if self.gt_scene is None:
             return None
-        key = (index, "gt")
-        if key not in self._cache:
-            cam = self.gt_scene.cameras[index]
-            self._cache[key] = (cam, torch.from_numpy(self.gt_scene.load_image(cam, self.downscale)).to(self.device))
-        return self._cache[key][1]
+        if index not in self._gt:
+            self._gt[index] = self._decode(self.gt_scene, index)
+        return as_float(self._gt[index])
 
-    def load_all(self, level: int = 1) -> None:
-        """Read every image a run uses now: the training views at ``level``, the held-out views
-        at the training size and the ground truth. A job calls this before it writes anything,
-        so an image whose header reads but whose pixels do not (a cut-off PNG) stops it with
-        an :class:`~..errors.ImageError` naming the file instead of at some later step. The
-        images stay cached, as training would have cached them on first use."""
-        for i in self.train_ids:
-            self.view(i, level)
-        for i in self.test_ids:
-            self.view(i, 1)
+    def load_all(self, level: int = 1, on_image: Optional[Callable[[int, int], None]] = None,
+                 threads: Optional[int] = None) -> None:
+        """Read every image a run uses now: the photos, the ground truth, and the training
+        views at ``level``. A job calls this before it writes anything, so an image whose
+        header reads but whose pixels do not (a cut-off PNG) stops it with an
+        :class:`~..errors.ImageError` naming the file instead of at some later step. Files are
+        decoded on ``threads`` threads (default: the machine's cores, at most 8); the first
+        file in the survey's order that fails is the one reported. ``on_image(done, total)``
+        follows the progress."""
+        jobs = [(self.scene, i, self._photos) for i in sorted(self.train_ids + self.test_ids)
+                if i not in self._photos]
         if self.gt_scene is not None:
-            for i in range(len(self.gt_scene.cameras)):
-                self.gt_view(i)
+            jobs += [(self.gt_scene, i, self._gt) for i in range(len(self.gt_scene.cameras)) if i not in self._gt]
+        threads = threads or min(8, os.cpu_count() or 1)
+        with ThreadPoolExecutor(max(1, threads)) as pool:
+            futures = [pool.submit(self._decode, scene, i) for scene, i, _ in jobs]
+            try:
+                for done, ((_, i, store), fut) in enumerate(zip(jobs, futures), 1):
+                    store[i] = fut.result()
+                    if on_image is not None:
+                        on_image(done, len(jobs))
+            finally:
+                for fut in futures:
+                    fut.cancel()
+        if level != 1:
+            for i in self.train_ids:
+                self.view(i, level)
 
     def drop_level(self, level: int) -> None:
-        for key in [k for k in self._cache if k[1] == level]:
-            del self._cache[key]
+        for key in [k for k in self._levels if k[1] == level]:
+            del self._levels[key]
+
+    def image_bytes(self) -> int:
+        """Bytes the decoded images hold now (photos, ground truth, pyramid levels)."""
+        return sum(t.numel() * t.element_size()
+                   for d in (self._photos, self._gt, self._levels) for t in d.values())
+
+    def training_pixels(self, ids: Optional[list[int]] = None) -> int:
+        """Pixels of the training views (``ids``, default all) at their training size."""
+        return sum(self.sizes[i][0] * self.sizes[i][1] for i in (self.train_ids if ids is None else ids))
 
 
 def view_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:

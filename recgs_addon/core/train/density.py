@@ -83,7 +83,10 @@ def split_values(params: dict, select: torch.Tensor, generator: torch.Generator,
     R = quat_to_rotmat(params["quats"].detach()[idx])
     for name, p in params.items():
         out[name] = p.detach()[idx].repeat_interleave(n_children, 0) if name != "means" else None
-    local = torch.randn(len(idx), n_children, 3, generator=generator, dtype=scales.dtype) * scales[:, None, :]
+    # drawn on the CPU by the trainer's CPU generator whatever the device: the same model on every device
+    local = torch.randn(len(idx), n_children, 3, generator=generator, dtype=scales.dtype,
+                        device=generator.device).to(scales.device)
+    local = local * scales[:, None, :]
     offsets = torch.einsum("nij,nkj->nki", R, local).reshape(-1, 3)
     out["means"] = params["means"].detach()[idx].repeat_interleave(n_children, 0) + offsets.to(params["means"].dtype)
     out["log_scales"] = (scales / SPLIT_SCALE_DIVISOR).log().repeat_interleave(n_children, 0)
@@ -102,9 +105,12 @@ class GradientStats:
     max_radius: torch.Tensor
 
     @classmethod
-    def zeros(cls, n: int) -> "GradientStats":
-        return cls(torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.int64),
-                   torch.zeros(n, dtype=torch.int32))
+    def zeros(cls, n: int, device=None) -> "GradientStats":
+        return cls(torch.zeros(n, dtype=torch.float64, device=device), torch.zeros(n, dtype=torch.int64, device=device),
+                   torch.zeros(n, dtype=torch.int32, device=device))
+
+    def to(self, device) -> "GradientStats":
+        return GradientStats(self.accum.to(device), self.count.to(device), self.max_radius.to(device))
 
     def add(self, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> None:
         vis = radii > 0
@@ -118,7 +124,7 @@ class GradientStats:
         return self.accum / self.count.clamp_min(1)
 
     def state_dict(self) -> dict:
-        return {"accum": self.accum, "count": self.count, "max_radius": self.max_radius}
+        return {"accum": self.accum.cpu(), "count": self.count.cpu(), "max_radius": self.max_radius.cpu()}
 
 
 # --- relocation under a fixed budget (3DGS-MCMC, Kheradmand et al. 2024) -----------------
@@ -152,7 +158,7 @@ def split_opacity_scale(opacity: torch.Tensor, scale: torch.Tensor, copies: torc
     o = opacity.to(torch.float64).clamp(1e-12, MAX_OPACITY)
     n = copies.to(torch.float64).clamp(1, MAX_COPIES)
     o_new = 1.0 - torch.pow(1.0 - o, 1.0 / n)
-    j = torch.arange(1, MAX_COPIES + 1, dtype=torch.float64)
+    j = torch.arange(1, MAX_COPIES + 1, dtype=torch.float64, device=o.device)
     log_binom = torch.lgamma(n[:, None] + 1) - torch.lgamma(j + 1) - torch.lgamma((n[:, None] - j).clamp_min(0) + 1)
     terms = torch.exp(log_binom) * torch.pow(o_new[:, None], j) / j.sqrt() * torch.where(j % 2 == 1, 1.0, -1.0)
     terms = torch.where(j[None, :] <= n[:, None], terms, torch.zeros_like(terms))
@@ -182,7 +188,7 @@ def _draw(params: dict, alive: torch.Tensor, count: int, generator: torch.Genera
         ws = w * score.detach()[idx].to(torch.float64).clamp_min(0)
         if bool(ws.sum() > 0) and bool(torch.isfinite(ws).all()):
             w = ws
-    return idx[torch.multinomial(w, count, replacement=True, generator=generator)]
+    return idx[torch.multinomial(w.cpu(), count, replacement=True, generator=generator).to(idx.device)]
 
 
 def relocate(params: dict, optimizer, generator: torch.Generator, dead_opacity: float = DEAD_OPACITY,
@@ -261,7 +267,7 @@ def perturb_means(params: dict, lr_means: float, noise_lr: float, generator: tor
     R = quat_to_rotmat(params["quats"].detach()[rows])
     s2 = params["log_scales"].detach()[rows].exp().square()
     cov = R @ (s2[:, :, None] * R.transpose(1, 2))
-    eps = torch.randn(len(rows), 3, generator=generator, dtype=cov.dtype)
+    eps = torch.randn(len(rows), 3, generator=generator, dtype=cov.dtype, device=generator.device).to(cov.device)
     step = (cov @ eps[:, :, None]).squeeze(2) * (gate[rows] * noise_lr * lr_means)[:, None]
     with torch.no_grad():
         params["means"].index_add_(0, rows, step.to(params["means"].dtype))

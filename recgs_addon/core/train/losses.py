@@ -28,8 +28,8 @@ def _bchw(img: torch.Tensor) -> torch.Tensor:
 
 
 def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA, dtype=torch.float32):
-    """(size,) normalised 1D Gaussian."""
-    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    """(size,) normalised 1D Gaussian, on the CPU (the blur reads its taps as numbers)."""
+    x = torch.arange(size, dtype=torch.float64, device="cpu") - (size - 1) / 2
     g = torch.exp(-(x * x) / (2 * sigma * sigma))
     return (g / g.sum()).to(dtype)
 
@@ -77,7 +77,7 @@ def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def ssim_map(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """(B, C, H, W) SSIM of each pixel's window."""
     a, b = _bchw(a), _bchw(b)
-    w = gaussian_window(dtype=a.dtype).to(a.device)
+    w = gaussian_window(dtype=a.dtype)
     # the blurs work per channel, so a few images blur in one call: one for the three that
     # follow ``a``, one for the two of ``b`` alone (in training the target, constant: no
     # graph, no backward)

@@ -56,14 +56,29 @@ class FixedTargets(Objective):
     """Per-view replacement targets (and optional weights) held at full training resolution and
     area-averaged to each pyramid level; views without one fit their photo, all pixels counting.
 
-    ``images[index]``: (H, W, 3); ``weights[index]``: (H, W). Both dicts may be changed
-    between training segments (the caustic methods do; ``clear()`` returns to the photos).
-    ``reference(image, render)``, optional: what a held-out render is scored against."""
+    :meth:`put` sets a view's target (H, W, 3) and weight (H, W); they are kept as float16
+    (half the memory of float32, a 2^-11 step at full scale: an eighth of an 8-bit grey
+    level), so a survey of hundreds of views holds them beside its photos. :meth:`get` gives
+    the target back as float32. Targets may change between training segments (the caustic
+    methods do; ``clear()`` returns to the photos). ``reference(image, render)``, optional:
+    what a held-out render is scored against."""
 
     def __init__(self, reference: Optional[Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = None):
         self.images: dict[int, torch.Tensor] = {}
         self.weights: dict[int, torch.Tensor] = {}
         self._reference = reference
+
+    def put(self, index: int, image: torch.Tensor, weight: Optional[torch.Tensor] = None) -> None:
+        self.images[index] = image.detach().to(torch.float16)
+        if weight is None:
+            self.weights.pop(index, None)
+        else:
+            self.weights[index] = weight.detach().to(torch.float16)
+
+    def get(self, index: int) -> Optional[torch.Tensor]:
+        """View ``index``'s target (H, W, 3) float32 at full training resolution, or None."""
+        t = self.images.get(index)
+        return None if t is None else t.float()
 
     def reference(self, index, image, render):
         return image if self._reference is None else self._reference(image, render)
@@ -72,8 +87,13 @@ class FixedTargets(Objective):
         h, w = image.shape[:2]
         t = self.images.get(index)
         wt = self.weights.get(index)
-        return (image if t is None else resample(t, h, w)), (None if wt is None else resample(wt, h, w))
+        return (image if t is None else resample(t.float(), h, w)), (None if wt is None else resample(wt.float(), h, w))
 
     def clear(self) -> None:
         self.images.clear()
         self.weights.clear()
+
+    @staticmethod
+    def bytes_per_pixel() -> int:
+        """Memory a view's target takes per pixel (three float16 channels)."""
+        return 6

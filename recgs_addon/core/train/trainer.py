@@ -89,7 +89,7 @@ class Trainer:
         self.sh_degree = min(gaussians.sh_degree, cfg.sh_degree) if cfg.sh_policy == "probation" else 0
         self.params = self._params_from(gaussians)
         self.optimizer = self._make_optimizer()
-        self.stats = density.GradientStats.zeros(len(gaussians))
+        self.stats = density.GradientStats.zeros(len(gaussians), self.device)
         self.row_grads = RowGrads()   # gradients of the rows in view only (large models)
         self.step = 0
         self.elapsed = 0.0
@@ -97,8 +97,7 @@ class Trainer:
         self.history: list[dict] = []
         self.budget = cfg.budget  # may be frozen by "auto"
         if self.budget is None and cfg.pixels_per_gaussian > 0:
-            pixels = sum(data.scene.cameras[i].width * data.scene.cameras[i].height for i in data.train_ids)
-            self.budget = max(len(gaussians), int(pixels / cfg.downscale ** 2 / cfg.pixels_per_gaussian))
+            self.budget = max(len(gaussians), int(data.training_pixels() / cfg.pixels_per_gaussian))
         self.growth_frozen = False
         self.sh_state = {"trial": None, "done": cfg.sh_degree == 0}
         self.best_psnr = -math.inf
@@ -189,25 +188,45 @@ class Trainer:
         with numba_kernels.own_threads() if path == "numba" else contextlib.nullcontext():
             return self._train_step(path)
 
-    def _train_step(self, path) -> float:
+    def _forward(self, index: int, level: int, path):
+        """Render training view ``index`` at pyramid ``level`` on ``path`` and take the loss
+        against the objective's target: (camera, render output, loss)."""
         c = self.cfg
-        level = self.level()
-        index = self._next_view()
         cam, img = self.data.view(index, level)
-        for g in self.optimizer.param_groups:
-            if g["name"] == "means":
-                g["lr"] = self._means_lr()
         viewmat, K = view_tensors(cam, self.device)
         rg = self.row_grads
         k = num_sh_coeffs(self.sh_degree)   # active SH coefficients, as in _sh()
         p = {n: rg.track(n, v, cols=k - 1 if n == "sh_rest" else None) for n, v in self.params.items()}
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (p["sh_dc"], p["sh_rest"]),
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                     background=torch.tensor(c.background, dtype=torch.float32), compiled=path, gather=rg)
+                     background=torch.tensor(c.background, dtype=torch.float32, device=self.device), compiled=path, gather=rg)
         target, weight = self.objective.target(index, img, out.rgb.detach())
         loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight,
                              self.objective.loss_kind,
                              fast_ssim=numba_ssim.ssim_term if path == "numba" and numba_ssim.load() else None)
+        return cam, out, loss
+
+    def dry_step(self, index: int):
+        """One forward and backward pass on training view ``index`` at the training resolution
+        that changes nothing (the gradients are dropped): what a step costs now, for
+        ``plan.time_steps``. Returns the path it ran on."""
+        path = self.compiler.compiled()
+        with numba_kernels.own_threads() if path == "numba" else contextlib.nullcontext():
+            _, _, loss = self._forward(index, 1, path)
+            loss.backward()
+            self.row_grads.write()
+        for v in self.params.values():
+            v.grad = None
+        return path
+
+    def _train_step(self, path) -> float:
+        c = self.cfg
+        level = self.level()
+        index = self._next_view()
+        for g in self.optimizer.param_groups:
+            if g["name"] == "means":
+                g["lr"] = self._means_lr()
+        cam, out, loss = self._forward(index, level, path)
         value = loss.item()
         if not math.isfinite(value):   # skip the update: the parameters keep their last good values
             self.bad_steps += 1
@@ -219,7 +238,7 @@ class Trainer:
             return value
         self.bad_steps = 0
         loss.backward()
-        rg.write()   # .grad of the parameters: the visible rows' gradients, zero elsewhere
+        self.row_grads.write()   # .grad of the parameters: the visible rows' gradients, zero elsewhere
         if c.opacity_reg or c.scale_reg:
             value += self._regulariser_grad(out.radii > 0)
         if self.densifying() and self._uses_gradient_stats() and out.means2d.grad is not None:
@@ -336,21 +355,21 @@ class Trainer:
         if n_clone:
             density.append(p, self.optimizer, {n: v.detach()[clone] for n, v in p.items()})
         if n_split:
-            children = density.split_values(p, torch.cat([split, torch.zeros(n_clone, dtype=torch.bool)]), self.gen)
+            children = density.split_values(p, torch.cat([split, torch.zeros(n_clone, dtype=torch.bool, device=self.device)]), self.gen)
             density.append(p, self.optimizer, children)
         n = p["means"].shape[0]
         opac = torch.sigmoid(p["logit_opacities"].detach())
         prune = opac < density.PRUNE_OPACITY
         prune[:n0] |= split  # split originals are replaced by their children
         if self.reset_done:
-            radius = torch.cat([self.stats.max_radius, torch.zeros(n - n0, dtype=torch.int32)])
+            radius = torch.cat([self.stats.max_radius, torch.zeros(n - n0, dtype=torch.int32, device=self.device)])
             big = p["log_scales"].detach().exp().max(1).values > density.PRUNE_WORLD_SCALE * self.extent
             prune |= (radius > density.PRUNE_SCREEN_RADIUS) | big
         if bool(prune.all()):
             prune[torch.argmax(opac)] = False  # never prune everything (the backward needs one)
         if prune.any():
             density.remove(p, self.optimizer, ~prune)
-        self.stats = density.GradientStats.zeros(p["means"].shape[0])
+        self.stats = density.GradientStats.zeros(p["means"].shape[0], self.device)
         return {"cloned": n_clone, "split": n_split, "pruned": int(prune.sum())}
 
     def _relocate_and_grow(self) -> dict:
@@ -362,7 +381,7 @@ class Trainer:
         n = p["means"].shape[0]
         added = density.grow(p, self.optimizer, self._growth_room(n, unbounded=n), self.gen, score=score,
                              dead_opacity=c.relocate_opacity)
-        self.stats = density.GradientStats.zeros(p["means"].shape[0])
+        self.stats = density.GradientStats.zeros(p["means"].shape[0], self.device)
         return {"relocated": moved, "added": added}
 
     # --- snapshots (a method that keeps or restores a model uses these) -----------------
@@ -375,7 +394,7 @@ class Trainer:
         statistics, and its SH degree."""
         self.params = {n: torch.nn.Parameter(v.detach().clone().to(self.device)) for n, v in snap["params"].items()}
         self.optimizer = self._make_optimizer()
-        self.stats = density.GradientStats.zeros(self.params["means"].shape[0])
+        self.stats = density.GradientStats.zeros(self.params["means"].shape[0], self.device)
         self.sh_degree = snap["sh_degree"]
 
     def restart_plateau(self, forget_best: bool = False) -> None:
@@ -395,7 +414,7 @@ class Trainer:
         p = self.params
         return render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
                       viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                      background=torch.tensor(self.cfg.background, dtype=torch.float32),
+                      background=torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device),
                       compiled=self.compiler.compiled())
 
     def render_view(self, index: int) -> torch.Tensor:
@@ -637,7 +656,7 @@ class Trainer:
             g["fused"] = f
             if f:
                 g["foreach"] = None
-        self.stats = density.GradientStats(**s["stats"])
+        self.stats = density.GradientStats(**s["stats"]).to(self.device)
         self.gen.set_state(s["gen"])
         torch.set_rng_state(s["torch_rng"])
         self.np_rng.bit_generator.state = s["np_rng"]
@@ -673,5 +692,5 @@ def make_trainer(scene_dir: str | Path, cfg: TrainConfig, images: Optional[str |
         raise RecGSError(f"{scene_dir / 'images'}: image folder is empty")
     scene = load_scene(scene_dir, image_dir=image_dir)
     gt_scene = load_scene(scene_dir, image_dir=resolve_image_dir(scene_dir, gt_images)) if gt_images is not None else None
-    data = TrainData(scene, cfg.downscale, cfg.holdout_every, cfg.device, gt_scene=gt_scene)
+    data = TrainData(scene, cfg.downscale, cfg.holdout_every, cfg.device, gt_scene=gt_scene, max_side=cfg.max_side)
     return Trainer(data, cfg, gaussians)
