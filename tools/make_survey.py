@@ -20,6 +20,7 @@ Output folder::
                             TRUE poses and PINHOLE intrinsics, and sparse points with tracks
     sfm/0/                  (only with --sfm) pycolmap's own reconstruction from images/
     survey.json             every parameter, the cameras, per-shot caustic phase and mean gain
+    frames.json             (only with --caustic-motion smooth) each frame's time, as a video import writes it
     README.md               short description of the dataset and the caustic model
 
 Caustic model
@@ -38,7 +39,9 @@ the plane z = 0 (world XY / tile size, repeating). The rendered linear radiance 
 inter-reflections; as the gain sits in the albedo, it also shows in shadows, a simplification),
 and ``clean/`` (g == 1) is the scene under the caustics' mean illumination: the target of caustic
 removal. Between shots the pattern evolves in time (``--caustic-dt`` seconds per shot) and is
-shifted by a random offset, as if each photo was taken at a different instant.
+shifted by a random offset, as if each photo was taken at a different instant
+(``--caustic-motion random``), or drifts smoothly with time as in a video (``--caustic-motion smooth``:
+neighbouring frames share much of their light pattern).
 Patterns (``--caustic-pattern``):
 
 * ``refraction`` (default): physically motivated. A water surface height field (sum of travelling
@@ -235,10 +238,21 @@ def caustic_gain(kind: str, res: int, t: float, offset=(0.0, 0.0), seed: int = 0
     return g.astype(np.float32)
 
 
-def caustic_shots(n: int, seed: int, dt: float) -> list[dict]:
-    """Per-shot caustic phase: time ``t = i * dt`` (s) and a random offset in tile units."""
+def caustic_shots(n: int, seed: int, dt: float, motion: str = "random", drift=(0.01, 0.004)) -> list[dict]:
+    """Per-shot caustic phase: time ``t = i * dt`` (s) and an offset in tile units.
+
+    ``motion="random"``: a random offset per shot, as photos taken at unrelated instants
+    (each shot's light independent of the last). ``"smooth"``: as a video, the pattern drifts
+    with the waves at ``drift`` tile units per second from one random start, so each frame's
+    light is a small step from the last (neighbouring frames share much of their pattern)."""
     rng = np.random.default_rng([seed, 7])
-    offsets = rng.uniform(0, 1, (n, 2))
+    if motion == "smooth":
+        start = rng.uniform(0, 1, 2)
+        offsets = start + np.outer(np.arange(n) * dt, np.asarray(drift, float))
+    elif motion == "random":
+        offsets = rng.uniform(0, 1, (n, 2))
+    else:
+        raise ValueError(f"unknown caustic motion {motion!r} (random or smooth)")
     return [{"time_s": i * dt, "offset": [float(offsets[i, 0]), float(offsets[i, 1])]} for i in range(n)]
 
 
@@ -291,12 +305,12 @@ def _rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
 
 
 def lawnmower_layout(views: int, footprint_along: float, footprint_across: float,
-                     overlap: float, sidelap: float) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Serpentine survey lines along world +x / -x.
+                     overlap: float, sidelap: float, lines: int = 0) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Serpentine survey lines along world +x / -x (``lines`` of them; 0: about sqrt(views / 3)).
 
     Returns (xy (views, 2) nadir positions in shooting order, heading (views,) radians, info).
     """
-    n_lines = max(1, int(round(math.sqrt(views / 3.0))))
+    n_lines = lines if lines > 0 else max(1, int(round(math.sqrt(views / 3.0))))
     per_line = math.ceil(views / n_lines)
     ds = (1 - overlap) * footprint_along
     dl = (1 - sidelap) * footprint_across
@@ -313,12 +327,42 @@ def lawnmower_layout(views: int, footprint_along: float, footprint_across: float
     return np.array(xy), np.array(heading), info
 
 
+def wander_layout(views: int, footprint_along: float, footprint_across: float, overlap: float,
+                  seed: int) -> tuple[np.ndarray, np.ndarray, dict]:
+    """A diver's wandering track: a smooth random curve that loops back over the same seabed
+    (two sums of sines in x and y), views equally spaced along it, heading along the track.
+
+    The spacing is ``(1 - overlap)`` of the footprint along the track; the track spans about
+    three footprints each way, so it crosses itself and each seabed point is filmed at several
+    passes, minutes apart."""
+    rng = np.random.default_rng([seed, 13])
+    ds = (1 - overlap) * footprint_along
+    length = ds * max(views - 1, 1)
+    amp = 1.5 * np.array([footprint_across, footprint_along])
+    f = rng.uniform(0.6, 1.4, 4) * np.array([1.0, 2.1, 1.3, 2.9])
+    ph = rng.uniform(0, 2 * np.pi, 4)
+    u = np.linspace(0.0, 2 * np.pi * max(1.0, length / (4 * amp.mean())), 20000)
+    x = amp[0] * (0.7 * np.sin(f[0] * u + ph[0]) + 0.3 * np.sin(f[1] * u + ph[1]))
+    y = amp[1] * (0.7 * np.sin(f[2] * u + ph[2]) + 0.3 * np.sin(f[3] * u + ph[3]))
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+    arc *= length / arc[-1]                       # the curve's length is the track's
+    s = np.arange(views) * ds
+    xs, ys = np.interp(s, arc, x), np.interp(s, arc, y)
+    dx, dy = np.gradient(xs), np.gradient(ys)
+    info = {"lines": 0, "per_line": views, "along_spacing_m": ds, "line_spacing_m": 0.0, "track_m": length}
+    return np.stack([xs, ys], 1), np.arctan2(dy, dx), info
+
+
 def make_cameras(args, hf: Heightfield) -> tuple[list[Camera], dict]:
-    """Survey cameras (COLMAP convention) flying a lawnmower pattern at ``args.altitude`` above the seabed."""
+    """Survey cameras (COLMAP convention) flying a lawnmower pattern (or a wandering track) at
+    ``args.altitude`` above the seabed."""
     fx, fy, cx, cy = intrinsics(args.width, args.height, args.hfov)
     across = 2 * args.altitude * math.tan(math.radians(args.hfov) / 2)   # image width on the ground
     along = across * args.height / args.width
-    xy, heading, info = lawnmower_layout(args.views, along, across, args.overlap, args.sidelap)
+    if args.path == "wander":
+        xy, heading, info = wander_layout(args.views, along, across, args.overlap, args.seed)
+    else:
+        xy, heading, info = lawnmower_layout(args.views, along, across, args.overlap, args.sidelap, args.lines)
     rng = np.random.default_rng([args.seed, 11])
     z = hf.mean_around(xy[:, 0], xy[:, 1], 0.8) + args.altitude + rng.normal(0, 0.05, len(xy))
     cams = []
@@ -1110,6 +1154,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--sidelap", type=float, default=0.6, help="overlap between neighbouring lines")
     g.add_argument("--pitch", type=float, default=8.0, help="forward pitch of the camera (degrees)")
     g.add_argument("--jitter-deg", type=float, default=1.5, help="random attitude jitter (degrees, std)")
+    g.add_argument("--lines", type=int, default=0, help="lawnmower lines (0: about sqrt(views / 3))")
+    g.add_argument("--path", choices=("lawnmower", "wander"), default="lawnmower",
+                   help="survey lines, or a diver's wandering track that loops back over the seabed")
     g.add_argument("--rocks", type=int, default=7, help="number of rocks")
     g = p.add_argument_group("caustics")
     g.add_argument("--caustic-pattern", choices=CAUSTIC_PATTERNS, default="refraction", help="pattern kind")
@@ -1118,6 +1165,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--caustic-blur", type=float, default=0.03, help="softening (Gaussian std, m)")
     g.add_argument("--caustic-seed", type=int, default=None, help="pattern seed (default: --seed)")
     g.add_argument("--caustic-dt", type=float, default=1.0, help="seconds between shots")
+    g.add_argument("--caustic-motion", choices=("random", "smooth"), default="random",
+                   help="random: each shot's pattern at a random offset (photos); smooth: the pattern "
+                        "drifts with time (video frames, --caustic-dt apart)")
+    g.add_argument("--caustic-drift", default="0.01,0.004", help="smooth motion: drift in tile units per second")
     g.add_argument("--caustic-res", type=int, default=256, help="texture resolution (texels per tile)")
     g = p.add_argument_group("lighting and rendering")
     g.add_argument("--sun-tilt", type=float, default=25.0, help="sun tilt from vertical (degrees)")
@@ -1140,6 +1191,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--depth-tol", type=float, default=0.02, help="visibility depth tolerance (m)")
     g.add_argument("--save-depth", action="store_true", help="also write depth/NAME.npy (float32 z)")
     g.add_argument("--save-blend", action="store_true", help="also save scene.blend")
+    g.add_argument("--no-clean", dest="clean", action="store_false",
+                   help="skip the ground-truth renders (clean/): half the time, for surveys only timed or sized")
     g.add_argument("--sfm", action="store_true", help="also run pycolmap SfM on images/ -> sfm/0")
     a = p.parse_args(argv)
     if a.caustic_seed is None:
@@ -1156,7 +1209,7 @@ def prepare_output(out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for d in ("images", "clean", "sparse", "depth", "sfm"):
         shutil.rmtree(out / d, ignore_errors=True)
-    for f in ("survey.json", "README.md", "database.db", "scene.blend"):
+    for f in ("survey.json", "frames.json", "README.md", "database.db", "scene.blend"):
         (out / f).unlink(missing_ok=True)
     for d in ("images", "clean", "sparse/0"):
         (out / d).mkdir(parents=True)
@@ -1200,6 +1253,15 @@ def build_scene(args, hf: Heightfield, cams: list[Camera], terrain_size, light_d
     return rig, objects, info
 
 
+def _motion_text(args) -> str:
+    if args.caustic_motion == "smooth":
+        return (f"The pattern drifts smoothly from frame to frame ({args.caustic_dt} s apart, drift "
+                f"{args.caustic_drift} tile units per second), as in a video: neighbouring frames share much "
+                "of their light.")
+    return (f"The pattern changes from shot to shot (time step {args.caustic_dt} s plus a random\n"
+            "offset), as in a real survey where each photo is taken at a different instant.")
+
+
 def dataset_readme(args, n_points: int, denoise: bool) -> str:
     return f"""# Synthetic seafloor survey (RecGS for Blender)
 
@@ -1220,8 +1282,7 @@ and s = {args.caustic_strength}. g is looked up at each surface point projected 
 onto z = 0 and multiplies every seabed material's base colour, so in linear light an `images/`
 pixel is approximately g times the matching `clean/` pixel. The mean of g is exactly 1: caustics
 redistribute light without adding any, so `clean/` (g = 1) is the scene under the caustics' mean
-illumination. The pattern changes from shot to shot (time step {args.caustic_dt} s plus a random
-offset), as in a real survey where each photo is taken at a different instant.
+illumination. {_motion_text(args)}
 """
 
 
@@ -1246,11 +1307,15 @@ def render_views(args, out: Path, cams: list[Camera], rig: CausticRig, cam_ob, s
             set_camera_pose(cam_ob, cam)
             rig.set_shot(j)
             lin_c, depth = render_exr(tmp, "caustic_")
-            rig.set_shot(None)
-            lin_g, _ = render_exr(tmp, "clean_")
+            if args.clean:
+                rig.set_shot(None)
+                lin_g, _ = render_exr(tmp, "clean_")
+            else:   # no ground truth: the sparse points take their colours from the photos
+                lin_g = lin_c
             img_g = linear_to_srgb8(lin_g)
             write_png(out / "images" / cam.name, linear_to_srgb8(lin_c))
-            write_png(out / "clean" / cam.name, img_g)
+            if args.clean:
+                write_png(out / "clean" / cam.name, img_g)
             depths.append(depth)
             cleans.append(img_g)
             shots[j]["image"] = cam.name
@@ -1316,7 +1381,8 @@ def main(argv=None) -> int:
     log(f"{len(cams)} views on {path_info['lines']} lines, spacing {path_info['along_spacing_m']:.2f} m "
         f"along / {path_info['line_spacing_m']:.2f} m across, "
         f"terrain {terrain_size[0]:.1f} x {terrain_size[1]:.1f} m")
-    shots = caustic_shots(len(cams), args.caustic_seed, args.caustic_dt)
+    drift = tuple(float(v) for v in args.caustic_drift.split(","))
+    shots = caustic_shots(len(cams), args.caustic_seed, args.caustic_dt, args.caustic_motion, drift)
     gains = [caustic_gain(args.caustic_pattern, args.caustic_res, s["time_s"], s["offset"],
                           args.caustic_seed, args.caustic_strength, args.caustic_blur / args.caustic_scale)
              for s in shots]
@@ -1334,6 +1400,8 @@ def main(argv=None) -> int:
     t_render = time.time()
     depths, cleans = render_views(args, out, cams, rig, cam_ob, shots)
     t_render = time.time() - t_render
+    if not args.clean:
+        (out / "clean").rmdir()
 
     tris, owner = scene_triangles(objects)
     sparse = make_sparse_points(args, cams, depths, cleans, tris, owner, np.random.default_rng([args.seed, 5]))
@@ -1351,6 +1419,10 @@ def main(argv=None) -> int:
         log(f"SfM registered {res['registered']}/{res['images']} images in {res['seconds']:.1f} s: {res}")
     meta["timing_s"] = {"render": t_render, "total": time.time() - t_start}
     (out / "survey.json").write_text(json.dumps(meta, indent=1))
+    if args.caustic_motion == "smooth":   # frames of a video: their times, as a video import writes them
+        from recgs_addon.core.io.frames import write_frame_times
+        write_frame_times(out, {s["image"]: s["time_s"] for s in shots}, source="tools/make_survey.py",
+                          fps=1.0 / args.caustic_dt)
     (out / "README.md").write_text(dataset_readme(args, len(sparse["xyz"]), denoise))
     log(f"done in {time.time() - t_start:.1f} s (render {t_render:.1f} s)")
     return 0
