@@ -35,11 +35,11 @@ def tiny_cfg(**kw):
     return preset("default", **base)
 
 
-def test_holdout_split_llff():
+def test_holdout_split_every_nth_from_half_a_period_in():
     names = [f"{i:02d}.png" for i in range(17)][::-1]
     train, test = holdout_split(names, 8)
-    assert sorted(names[i] for i in test) == ["00.png", "08.png", "16.png"]
-    assert len(train) == 14 and not set(train) & set(test)
+    assert sorted(names[i] for i in test) == ["04.png", "12.png"]     # not the first or the last shot
+    assert len(train) == 15 and not set(train) & set(test)
     assert holdout_split(names, 0) == (sorted(range(17), key=lambda i: names[i]), [])
 
 
@@ -587,6 +587,9 @@ def test_blending_weights_add_up_to_the_alpha_of_the_view(small_scene):
     # alpha = 1 - T_final = sum_i alpha_i T_i over the Gaussians of each pixel
     assert float(w.sum()) == pytest.approx(float(out.alpha.sum()), rel=1e-3)
     assert float(w.min()) >= -1e-5
+    # rendered at half size, the weights still count training-resolution pixels
+    half = blending_weights(tr, i, max_side=max(cam.width, cam.height) // 2)
+    assert float(half.sum()) == pytest.approx(float(out.alpha.sum()), rel=0.05)
     support = view_support(tr)
     assert support.shape == (p["means"].shape[0],) and 0 <= support.min() and support.max() <= len(tr.data.train_ids)
     s = support_summary(support)

@@ -32,7 +32,7 @@ class TrainConfig:
     sh_every: int = 1000                 # "schedule": +1 degree every this many steps
     seed: int = 0
     device: str = "cpu"
-    holdout_every: int = 8               # LLFF: every 8th image by sorted name is held out; 0 = none
+    holdout_every: int = 8               # every 8th image by sorted name is held out, from the 5th (data.holdout_split); 0 = none
     # learning rates (INRIA); means scaled by the scene extent, decayed log-linearly
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6

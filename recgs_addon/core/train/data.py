@@ -1,5 +1,5 @@
 """The survey as the trainer sees it: :class:`TrainData` loads it, holds out every Nth image
-by sorted name (LLFF) and keeps an image pyramid for coarse-to-fine training.
+by sorted name and keeps an image pyramid for coarse-to-fine training.
 """
 from __future__ import annotations
 
@@ -20,13 +20,17 @@ MIN_IMAGE_SIDE = 8
 
 
 def holdout_split(names: list[str], every: int) -> tuple[list[int], list[int]]:
-    """(train indices, test indices) into ``sorted(names)`` order: every ``every``-th image
-    (0, every, 2*every, ...) is held out, as in LLFF/Mip-NeRF 360; ``every`` = 0 keeps all."""
+    """(train indices, test indices) into ``sorted(names)`` order: every ``every``-th image is
+    held out, starting half a period in (every // 2, then every // 2 + every, ...); ``every`` =
+    0 keeps all. LLFF / Mip-NeRF 360 start at the first image, but a survey's first and last
+    shots see seabed that no other shot does (the start of the first line, the end of the last):
+    a held-out view there scores a hole, not the model."""
     order = sorted(range(len(names)), key=lambda i: names[i])
     if every <= 0:
         return order, []
-    test = [i for k, i in enumerate(order) if k % every == 0]
-    train = [i for k, i in enumerate(order) if k % every != 0]
+    first = every // 2
+    test = [i for k, i in enumerate(order) if k % every == first]
+    train = [i for k, i in enumerate(order) if k % every != first]
     return train, test
 
 

@@ -52,6 +52,9 @@ class Progress:
     extra: dict = field(default_factory=dict)  # what a method driving the trainer adds (flat)
 
 
+#: Why a run without a time limit ends when held-out PSNR stops improving.
+PLATEAU = "held-out PSNR plateau"
+
 #: Consecutive steps with a non-finite loss after which a run stops (its last checkpoint,
 #: written before the trouble, stays as it was).
 MAX_BAD_STEPS = 10
@@ -109,6 +112,8 @@ class Trainer:
         #: (``score``, ``step``, and a ``snapshot()``)
         self.best: Optional[dict] = None
         self.best_step: Optional[int] = None   # the step of the model a run ended with, if restored
+        #: the step at which held-out PSNR first stopped improving (growth and SH settled), if it did
+        self.plateau_step: Optional[int] = None
         #: which rasterizer path each step takes (compiled once a cold cache has warmed up)
         self.compiler = CompileSwitch(cfg.compiled, max_degree=cfg.sh_degree, device=cfg.device)
         #: seconds the first compiled step spent tracing and loading its graphs: left out of
@@ -168,9 +173,20 @@ class Trainer:
     def _full_res_from(self) -> int:
         return max([int(until) for until, _ in self.cfg.pyramid], default=0)
 
+    def schedule_fraction(self) -> float:
+        """How far the run is through what it was given (0..1): its steps of the iteration
+        limit or, with a time limit, its schedule time of that limit, whichever is further. The
+        position learning rate decays over it, so a 5-minute run ends with the fine steps a
+        30,000-step run ends with."""
+        c = self.cfg
+        t = self.step / max(1, c.iterations)
+        if c.max_minutes:
+            t = max(t, self.schedule_elapsed() / (60.0 * c.max_minutes))
+        return min(1.0, t)
+
     def _means_lr(self) -> float:
         c = self.cfg
-        t = min(1.0, self.step / max(1, c.iterations))
+        t = self.schedule_fraction()
         return math.exp((1 - t) * math.log(c.lr_means) + t * math.log(c.lr_means_final)) * self.extent
 
     def _next_view(self) -> int:
@@ -389,6 +405,17 @@ class Trainer:
         """A copy of the model: parameters and the active SH degree."""
         return {"params": {n: v.detach().clone() for n, v in self.params.items()}, "sh_degree": self.sh_degree}
 
+    @contextlib.contextmanager
+    def using(self, snap: dict):
+        """Render and evaluate with a ``snapshot()``'s model for the ``with`` block (the
+        trainer's own parameters, optimiser and statistics untouched)."""
+        saved = self.params, self.sh_degree
+        self.params, self.sh_degree = snap["params"], snap["sh_degree"]
+        try:
+            yield self
+        finally:
+            self.params, self.sh_degree = saved
+
     def restore(self, snap: dict) -> None:
         """Go back to a ``snapshot()``: its parameters with fresh Adam moments and gradient
         statistics, and its SH degree."""
@@ -508,7 +535,12 @@ class Trainer:
         if (c.plateau_patience and self.since_best >= c.plateau_patience
                 and self.growth_over() and self.sh_state["done"]
                 and self.sh_state["trial"] is None):
-            self.done_reason = "held-out PSNR plateau"
+            if self.plateau_step is None:
+                self.plateau_step = self.step
+            # with a time limit the run uses its time (the best model is kept, so steps that
+            # do not help cost nothing); without one a plateau ends it
+            if c.max_minutes is None:
+                self.done_reason = PLATEAU
 
     def _consider_best(self, score: float) -> None:
         """Remember the model if it scores best so far on the held-out photos as captured.
@@ -641,7 +673,7 @@ class Trainer:
             "sh_degree": self.sh_degree, "sh_state": self.sh_state, "best_psnr": self.best_psnr,
             "since_best": self.since_best, "reset_done": self.reset_done, "done_reason": self.done_reason,
             "objective_optimizer": None if self.objective_optimizer is None else self.objective_optimizer.state_dict(),
-            "last_densify": self.last_densify, "compile_stall": self.compile_stall,
+            "last_densify": self.last_densify, "compile_stall": self.compile_stall, "plateau_step": self.plateau_step,
             "best": None if self.best is None else {
                 **self.best, "params": {n: v.detach().cpu() for n, v in self.best["params"].items()}},
         }
@@ -668,6 +700,7 @@ class Trainer:
         self.reset_done = s["reset_done"]
         self.last_densify = s.get("last_densify", -1)   # checkpoints before keep_best have neither
         self.compile_stall = s.get("compile_stall", 0.0)
+        self.plateau_step = s.get("plateau_step")
         self._stall_measured = False   # this process's own first compiled step adds to it
         self.best = s.get("best")
         if self.objective_optimizer is not None and s.get("objective_optimizer") is not None:
