@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .core.caustics.config import ESTIMATORS
+from .core.caustics.config import CAUSTIC_MODES, ESTIMATORS
 from .core.errors import RecGSError
 
 
@@ -276,7 +276,7 @@ def _plan(args, method, trainer):
     limit = None if args.max_memory is None else int(args.max_memory * 2 ** 30)
     if limit is not None and not limit > 0:
         raise RecGSError(f"--max-memory must be a number of gigabytes above 0, got {args.max_memory}")
-    plan = plan_run(trainer, method.state_bytes(), limit)
+    plan = plan_run(trainer, method.state_bytes(), limit, caustics=method.ccfg.mode in CAUSTIC_MODES)
     lines = plan.lines()
     _emit("plan", lines=lines, **plan.summary())
     for line in lines:
@@ -338,16 +338,17 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
         for s, h in old.items():
             signal.signal(s, h)
     try:
-        return _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint)
+        return _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint, plan)
     except RecGSError as exc:   # a full disk or an unwritable folder at the end: one line, the last checkpoint kept
         _emit("error", message=f"{exc} (training ended at iteration {trainer.step}; the last checkpoint is kept)")
         print(f"error: {exc}", file=sys.stderr)
         return 1
 
 
-def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint) -> int:
+def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint, plan) -> int:
     """The end of a run: the last checkpoint, the output images, metrics and report."""
     from .core.outputs.diagnostics import support_summary, view_support
+    from .core.train.coverage import COVERAGE_VIEWS, spread, surface_coverage
     from .core.outputs.exports import write_outputs
     from .core.outputs.report import write_run_report
 
@@ -360,13 +361,16 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
         return 0
     final = trainer.evaluate()
     support = support_summary(view_support(trainer))
+    coverage = surface_coverage(trainer, source_ids=spread(trainer.data.train_ids, COVERAGE_VIEWS)).summary()
     metrics = {
         "status": "done", "reason": reason, "iterations": trainer.step,
         "seconds": round(trainer.elapsed, 2), "gaussians": int(trainer.params["means"].shape[0]),
         "sh_degree": trainer.sh_degree, "test_views": [trainer.data.scene.cameras[i].name for i in trainer.data.test_ids],
         "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
         "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"),
-        "psnr_test_captured": final.get("psnr_captured"), "view_support": support, **outputs,
+        "psnr_test_captured": final.get("psnr_captured"), "view_support": support, "coverage": coverage,
+        "coverage_sparse": {"median_views": plan.views_per_point, "median_passes": plan.passes_per_point},
+        "plan": plan.summary(), **outputs,
         "compile": trainer.compiler.summary(), "skipped_steps": trainer.skipped_steps,
         "history": trainer.history, "recurrences": [], **method.summary(),
         "config": {**asdict(trainer.cfg), **asdict(ccfg)},

@@ -18,10 +18,19 @@ from ..render.rasterizer import render
 from ..train.data import view_tensors
 
 
-def blending_weights(trainer, index: int) -> torch.Tensor:
-    """(N,) blending weight (pixels) of every Gaussian in training view ``index`` at the
-    training resolution."""
-    cam, _ = trainer.data.view(index, 1)
+#: Views are rendered at most this many pixels on the long side (a weight is a share of the
+#: view; counted in training-resolution pixels, it hardly depends on the render's size, and a
+#: survey of 150 frames at 1600 px would take over an hour at full size).
+SUPPORT_SIDE = 400
+
+
+def blending_weights(trainer, index: int, max_side: int = SUPPORT_SIDE) -> torch.Tensor:
+    """(N,) blending weight (pixels at the training resolution) of every Gaussian in training
+    view ``index``, rendered at most ``max_side`` pixels on the long side."""
+    w, h = trainer.data.sizes[index]
+    level = max(1, -(-max(w, h) // max_side))
+    cam = trainer.data.camera(index, level)
+    area = (w * h) / (cam.width * cam.height)   # training pixels per rendered pixel
     viewmat, K = view_tensors(cam, trainer.device)
     p = {n: v.detach() for n, v in trainer.params.items()}
     dc = p["sh_dc"].clone().requires_grad_(True)
@@ -29,7 +38,7 @@ def blending_weights(trainer, index: int) -> torch.Tensor:
     out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (dc, p["sh_rest"][:, :k]),
                  viewmat, K, cam.width, cam.height, sh_degree=trainer.sh_degree, compiled=False)
     out.rgb.sum().backward()
-    return dc.grad[:, 0, :].mean(-1) / SH_C0
+    return dc.grad[:, 0, :].mean(-1) * (area / SH_C0)
 
 
 def view_support(trainer, min_weight: float = 1.0) -> np.ndarray:

@@ -25,6 +25,7 @@ import torch
 
 from ..errors import RecGSError
 from ..model.gaussians import num_sh_coeffs
+from .coverage import sparse_coverage
 
 #: Working memory of one training step per pixel of its image (the rasterizer's per-pixel
 #: buffers, the loss and SSIM maps, their gradients): 290-300 B measured at 1280x960 and
@@ -142,6 +143,8 @@ class RunPlan:
     seconds_per_1000: Optional[float]   # measured at the start's model size
     path: str = "eager"             # the rasterizer path the warm-up ran on
     budget_capped_from: Optional[int] = None   # the budget memory allowed, if lower than asked
+    views_per_point: Optional[float] = None    # median training views per sparse point (coverage.py)
+    passes_per_point: Optional[float] = None   # ... and independent passes (frames close in time: one)
     notes: list = field(default_factory=list)
 
     def summary(self) -> dict:
@@ -161,6 +164,9 @@ class RunPlan:
         if self.budget is not None:
             mem += f" (up to {self.budget:,} Gaussians)"
         out.append(mem)
+        if self.views_per_point is not None:
+            out.append(f"coverage: each seabed point in a median of {self.views_per_point:g} training views "
+                       f"({self.passes_per_point:g} passes)")
         if self.seconds_per_1000 is not None:
             out.append(f"time: about {self.seconds_per_1000:.0f} s per 1,000 steps now ({self.gaussians:,} "
                        f"Gaussians, {self.path} path); steps slow down as the model grows")
@@ -176,14 +182,17 @@ def estimate_peak(now: int, pixels: int, method_bytes: int, sh_degree: int, gaus
     return int(now + PIXEL_BYTES * pixels + method_bytes + model - held)
 
 
-def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, warmup_steps: int = 3) -> RunPlan:
+def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, warmup_steps: int = 3,
+             caustics: bool = False) -> RunPlan:
     """Measure and estimate what ``trainer``'s run needs (its images loaded), cap an automatic
     budget to the memory there is, and refuse (:class:`RecGSError`) a run that cannot fit.
 
     ``limit_bytes``: memory the run may take (default: what :func:`available_bytes` finds
     plus what this process holds already, times :data:`USABLE_SHARE`). ``method_bytes``: a
     caustic method's per-view state at its largest. ``warmup_steps``: forward and backward
-    passes timed on training views at the training resolution (the model does not change)."""
+    passes timed on training views at the training resolution (the model does not change).
+    ``caustics``: the run removes caustics (the plan then says where the survey's coverage is
+    short of what that needs)."""
     data, cfg = trainer.data, trainer.cfg
     big = max(data.train_ids + data.test_ids, key=lambda i: data.sizes[i][0] * data.sizes[i][1])
     w, h = data.sizes[big]
@@ -222,8 +231,27 @@ def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, 
                 f"{data.scene.image_dir}: {len(data.train_ids) + len(data.test_ids)} images at {w}x{h} need about "
                 f"{gb(fixed)} of memory before the model grows and {gb(limit_bytes)} is available; train at a "
                 f"lower resolution (--max-side, now {cfg.max_side or 'off'}) or on fewer photos")
+    cov = sparse_coverage(data)
+    if cov.points:
+        plan.views_per_point, plan.passes_per_point = cov.median_views, cov.median_passes
+        if caustics and cov.median_passes < MIN_PASSES:
+            plan.notes.append(coverage_advice(cov.median_views, cov.median_passes))
     plan.seconds_per_1000, plan.path = time_steps(trainer, warmup_steps)
     return plan
+
+
+#: Independent views of a seabed point below which caustic removal cannot tell the light from
+#: the seabed well (docs/caustics.md: with 3 views the best per-point estimate keeps half of
+#: one photo's light error, with 8 a seventh).
+MIN_PASSES = 6
+
+
+def coverage_advice(views: float, passes: float) -> str:
+    """What to tell a user whose survey sees each point too few times for caustic removal."""
+    return (f"caustic removal needs each seabed point in about {MIN_PASSES} or more independent views "
+            f"(photos, or video passes a second or more apart); this survey has a median of {passes:g} "
+            f"({views:g} views). Photograph with more overlap (80 % forward, 60 % side) or keep more frames "
+            "of a video; expect caustics to stay partly in the model")
 
 
 def time_steps(trainer, steps: int) -> tuple[Optional[float], str]:
