@@ -15,7 +15,7 @@ MODES = ("3dgs", "oracle", "recgs", "filter2d", "joint")
 #: Modes that train on caustic-free estimates (and write caustic maps).
 CAUSTIC_MODES = ("recgs", "filter2d", "joint")
 #: How RecGS estimates each view's caustics (recgs.py).
-ESTIMATORS = ("lowpass", "consensus", "lightfield")
+ESTIMATORS = ("lowpass", "consensus", "lightfield", "likelihood")
 
 
 @dataclass
@@ -38,6 +38,7 @@ class CausticConfig:
                                          # | lightfield: low band + one-sided coherent light over a floor (lightfield.py)
     lf_lambda: float = 0.05              # lightfield: TV weight (log light per pixel of edge)
     lf_tau: float = 0.02                 # lightfield: dead band (log light) below which light is not taken out
+    light_sigma: float = 1.0             # likelihood: blur (pixels at 320 px wide, scaled with the image) of a view's light
     consensus_stat: str = "mean"         # consensus: mean | median | min | quantile (of the views that see a pixel)
     consensus_q: float = 0.25            # consensus_stat quantile: which quantile
     fit_loss: str = "l1"                 # recgs: data term of the recurrences: l1 (paper; the views' median) | l2 (their mean)

@@ -45,16 +45,43 @@ from typing import Callable, Optional
 import torch
 
 from ..train.data import view_tensors
-from ..train.trainer import Progress, Trainer
+from ..train.losses import psnr
+from ..train.trainer import PLATEAU, Progress, Trainer
 from . import fft_filter
 from .config import CausticConfig
 from .consensus import consensus_targets
-from .estimate import estimate_caustics, remove_caustics
-from . import lightfield
+from .estimate import compensate_caustics, estimate_caustics, remove_caustics
+from . import lightfield, likelihood
 from .method import Method
 from .robust import TrimmedTargets, apply_gain, colour_gain, trim_weights
 
-PLATEAU = "held-out PSNR plateau"
+#: likelihood: training views a refit of the gain distribution renders, at most
+FIT_VIEWS = 24
+#: Once C has settled, it is refreshed every this many rounds' steps (a time-limited run trains on)
+REFRESH_EVERY = 5
+
+
+def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
+    """Whether the RecGS model beats the plain one on the held-out photos as captured (scores of
+    ``RecGS._scores``), and why. Where a gain likelihood was fitted, by its data term (the model
+    under which the held-out photos, caustics and all, are more likely), with PSNR against the
+    captured photos not falling more than :data:`HARM_DB`; otherwise by that PSNR alone.
+    docs/caustics.md measures how often this agrees with ground truth."""
+    if "psnr_captured" not in recgs or "psnr_captured" not in plain:
+        return True, "no held-out views to judge by"
+    dp = recgs["psnr_captured"] - plain["psnr_captured"]
+    if "nll" in recgs and "nll" in plain:
+        dn = recgs["nll"] - plain["nll"]
+        ok = dn < 0 and dp > -HARM_DB
+        return ok, f"likelihood {recgs['nll']:.4f} against {plain['nll']:.4f}, PSNR {dp:+.2f} dB"
+    return dp > 0, f"PSNR against the held-out photos {dp:+.2f} dB"
+
+
+#: How far the caustic-free model may fall below the plain one in PSNR against the held-out
+#: photos as captured and still be kept when the likelihood prefers it: a held-out photo's own
+#: caustics are no model's, and a model of the mean light meets them differently than one of
+#: their median.
+HARM_DB = 0.3
 
 
 class RecGS(Method):
@@ -77,6 +104,12 @@ class RecGS(Method):
         self.plain: Optional[dict] = None
         self.misses = 0
         self.drop_reason: Optional[str] = None  # why C was dropped (see _drop), if it was
+        #: likelihood: the survey's caustic gain distribution, refitted every recurrence
+        self.gain_model: Optional[likelihood.GainLikelihood] = None
+        #: at the end: how the RecGS model, the plain model and the kept best score (``_scores``)
+        self.candidates: Optional[dict] = None
+        #: the step at which C first settled (``recurrence_tol``), if it did
+        self.converged_at: Optional[int] = None
 
     @property
     def stage(self) -> str:
@@ -95,6 +128,8 @@ class RecGS(Method):
         view), the photo with its caustics compensated once C is in use."""
         if self.stage == "warmup":
             return image
+        if self._likelihood:   # its own light map follows the render too closely to score it
+            return compensate_caustics(image, render, self.eval_k, "additive", False)
         return self._decaustic(image, self._estimate(image, render, self.eval_k))
 
 
@@ -102,7 +137,17 @@ class RecGS(Method):
     def _lightfield(self) -> bool:
         return self.ccfg.estimator == "lightfield"
 
+    @property
+    def _likelihood(self) -> bool:
+        return self.ccfg.estimator == "likelihood"
+
+    def _sigma(self, image: torch.Tensor) -> float:
+        """The light's blur in pixels at this image's width (``light_sigma`` is given at 320 px)."""
+        return self.ccfg.light_sigma * image.shape[1] / 320.0
+
     def _decaustic(self, image: torch.Tensor, cmap: torch.Tensor) -> torch.Tensor:
+        if self._likelihood:
+            return likelihood.remove_light(image, cmap)
         if self._lightfield:   # the photo under the floor light, brought to the survey's mean light
             return lightfield.scale_linear(lightfield.remove_light(image, cmap), self.light_gain)
         return remove_caustics(image, cmap, self.ccfg.caustic_model)
@@ -112,6 +157,8 @@ class RecGS(Method):
         its light field, against the render brought down to the floor light)."""
         if self._lightfield:
             return self._light_fields([image], [rgb], k)[0]
+        if self._likelihood:
+            return likelihood.light_map(image, rgb, self._sigma(image))
         w = trim_weights(image, rgb, self.targets.k) if self.targets.k else None
         return estimate_caustics(image, rgb, k, self.ccfg.caustic_model, self.ccfg.caustic_dc, w)
 
@@ -130,6 +177,10 @@ class RecGS(Method):
     @torch.no_grad()
     def decaustic_image(self, index: int) -> torch.Tensor:
         image = self.data.view(index, 1)[1]
+        if self._likelihood:   # the light of the view against the model as it is now
+            if self.gain_model is None:
+                return image
+            return self._decaustic(image, self._estimate(image, self.trainer.render_view(index), 0))
         cmap = self.maps.get(index)
         return image if cmap is None else self._decaustic(image, cmap.float())
 
@@ -138,6 +189,8 @@ class RecGS(Method):
         are kept as float16, as the targets are (``FixedTargets``)."""
         self.maps = {i: m.to(torch.float16) for i, m in maps.items()}
         self.targets.clear()
+        if self._likelihood:   # the likelihood fits the photos themselves (``_nll``)
+            return
         for i, m in self.maps.items():   # from the kept maps, so a resumed run sets the same targets
             self.targets.put(i, self._decaustic(self.data.view(i, 1)[1], m.float()))
 
@@ -146,7 +199,8 @@ class RecGS(Method):
     def recur(self) -> dict:
         """One re-estimation of C for every training view; updates the targets."""
         tr = self.trainer
-        ids = self.data.train_ids
+        ids = self._fit_views() if self._likelihood else self.data.train_ids
+        previous_gain = self.gain_model
         if self.ccfg.estimator == "consensus":
             new = self._consensus_maps()
         else:
@@ -155,13 +209,18 @@ class RecGS(Method):
                 self.k = fft_filter.choose_k([self.data.view(i, 1)[1] - renders[i] for i in ids])
             if self._lightfield:
                 new = self._light_field_maps(renders)
+            elif self._likelihood:
+                new = self._likelihood_maps(ids, renders)
             else:
                 new = {i: self._estimate(self.data.view(i, 1)[1], renders[i], self.k) for i in ids}
         old = [self.maps[i].float() if i in self.maps else torch.zeros_like(new[i]) for i in ids]
         change = fft_filter.caustic_change([new[i] for i in ids], old)
+        if self._likelihood:   # the light maps follow the model's texture too; the gains' distribution settles
+            change = self.gain_model.distance(previous_gain) if previous_gain is not None else 1.0
         self._set_maps(new)
         self.recurrence += 1
-        level = fft_filter.mean_abs([self.caustic_map(i) for i in ids])
+        photos = {i: self.data.view(i, 1)[1] for i in ids}
+        level = fft_filter.mean_abs([photos[i] - self._decaustic(photos[i], self.maps[i].float()) for i in ids])
         entry = {"recurrence": self.recurrence, "iteration": tr.step, "elapsed": round(tr.elapsed, 2),
                  "c_change": change, "mean_abs_c": level, "k": self.k}
         self.rec_history.append(entry)
@@ -181,6 +240,31 @@ class RecGS(Method):
         photos = [self.data.view(i, 1)[1] for i in ids]
         self.light_gain = lightfield.linear_gain((p, lightfield.remove_light(p, new[i])) for p, i in zip(photos, ids))
         return new
+
+    def _fit_views(self) -> list[int]:
+        """likelihood: the training views a refit renders: all of a small survey, an evenly
+        spread :data:`FIT_VIEWS` of a large one (the gains' distribution needs samples, not
+        every view; the caustic-free photos are made from the final model, view by view)."""
+        ids = self.data.train_ids
+        if len(ids) <= FIT_VIEWS:
+            return list(ids)
+        return [ids[int(k * len(ids) / FIT_VIEWS)] for k in range(FIT_VIEWS)]
+
+    def _likelihood_maps(self, ids: list[int], renders: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
+        """Refit the survey's gain likelihood to the residuals of views ``ids`` (every other
+        pixel of each) and fit it from now on (``_nll``); their light maps."""
+        samples = [likelihood.log_ratio(self.data.view(i, 1)[1], renders[i])[::2, ::2].reshape(-1) for i in ids]
+        self.gain_model = likelihood.GainLikelihood.fit(torch.cat(samples))
+        self._use_likelihood()
+        return {i: likelihood.light_map(self.data.view(i, 1)[1], renders[i], self._sigma(renders[i])) for i in ids}
+
+    def _use_likelihood(self) -> None:
+        """Fit the views to the gain likelihood from the next step on (``LikelihoodObjective``)."""
+        if isinstance(self.trainer.objective, likelihood.LikelihoodObjective):
+            self.trainer.objective.gain = self.gain_model
+        else:
+            self.trainer.set_objective(likelihood.LikelihoodObjective(self.gain_model, self._sigma,
+                                                                      reference=self._reference))
 
     def _consensus_maps(self) -> dict[int, torch.Tensor]:
         """C = I - (gain-restored multi-view consensus of the photos), with the model's depth
@@ -215,18 +299,29 @@ class RecGS(Method):
         if entry["mean_abs_c"] < c.caustic_floor:
             self._drop(f"no caustics to remove (mean |C| {entry['mean_abs_c']:.4f})", restore=False)
         elif entry["c_change"] < c.recurrence_tol:
-            done = f"caustic estimate converged (change {entry['c_change']:.3f})"
+            if self.converged_at is None:
+                self.converged_at = self.trainer.step
+            if not self._time_limited():
+                done = f"caustic estimate converged (change {entry['c_change']:.3f})"
         elif prev is not None and self._stalled(entry):
             # a caustic field's estimate settles geometrically; one that keeps changing and
             # growing follows model error (surveys without caustics)
             self._drop(f"caustic estimate is not settling (change {prev['c_change']:.3f} -> "
                        f"{entry['c_change']:.3f}, mean |C| {prev['mean_abs_c']:.4f} -> {entry['mean_abs_c']:.4f})",
                        restore=False)
-        elif self.recurrence >= c.max_recurrences:
+        elif self.recurrence >= c.max_recurrences and not self._time_limited():
             done = "recurrence limit"
         if self.stage == "recurrence":
-            self.next_due = None if done else self.trainer.step + c.recurrence_steps
+            # once C has settled, a run with time left trains on against it and refreshes it now and then
+            every = c.recurrence_steps * (REFRESH_EVERY if self.converged_at is not None else 1)
+            last = self.recurrence >= c.max_recurrences
+            self.next_due = None if done or last else self.trainer.step + every
         return done
+
+    def _time_limited(self) -> bool:
+        """The run was given a time limit: it uses all of it (a converged estimate keeps the
+        model improving on the caustic-free targets; the kept model is chosen at the end)."""
+        return self.trainer.cfg.max_minutes is not None
 
     def _stalled(self, entry: dict) -> bool:
         """The last round's C changed by more than ``stall_ratio`` of the round before (and more
@@ -258,8 +353,15 @@ class RecGS(Method):
         return f"caustic estimate hurt held-out views ({score:.2f} dB against {self.plain['score']:.2f} dB)"
 
     def _snapshot(self, score: Optional[float]) -> None:
-        """Remember the plain model (before any C) and its held-out score."""
-        self.plain = {"score": score, **self.trainer.snapshot()}
+        """Remember the plain model (before any C) and its held-out score: the model now, or the
+        best the warm-up kept (``keep_best``) where that scored higher."""
+        tr = self.trainer
+        best = tr.best
+        if best is not None and score is not None and best["score"] > score:
+            self.plain = {"score": best["score"], "step": best["step"], "params": best["params"],
+                          "sh_degree": best["sh_degree"]}
+        else:
+            self.plain = {"score": score, "step": tr.step, **tr.snapshot()}
         self.misses = 0
 
     def _judge_round(self) -> bool:
@@ -286,6 +388,9 @@ class RecGS(Method):
         if restore:
             self.trainer.restore(self.plain)
         self.light_gain = torch.ones(3, device="cpu")
+        self.gain_model = None
+        if self.trainer.objective is not self.targets:
+            self.trainer.set_objective(self.targets)
         self._set_maps({})  # targets = the captured images
         self.misses = 0
         self.drop_reason = why
@@ -332,17 +437,58 @@ class RecGS(Method):
                 tr.done_reason = None
                 continue
             break
-        if self.stage == "recurrence":
-            # the same test when a limit ends the run: a caustic estimate that hurts held-out
-            # views is dropped, and the run ends with the plain model
-            harm = self._harm(tr.heldout_psnr())
-            if harm:
-                self._drop(harm)
-        tr.restore_best()
+        if self.stage == "recurrence" and self.plain is not None:
+            self._decide()
+        else:
+            tr.restore_best()
         if self.ccfg.robust_k and self.ccfg.gain_restore:
             self.restore_gain()
         tr.finish(progress)
         return reason
+
+    def _decide(self) -> None:
+        """Never worse than plain: at the end of the recurrences, keep the RecGS model only where
+        the held-out photos, as captured, show it better than the plain model the recurrences
+        started from (:meth:`prefers_recgs`); otherwise the plain model comes back. Both
+        candidates' scores, and the choice, go into the run's summary."""
+        tr = self.trainer
+        self.candidates = {"recgs": self._scores(tr.snapshot()), "plain": self._scores(self.plain)}
+        keep, why = prefers_recgs(self.candidates["recgs"], self.candidates["plain"])
+        self.candidates["kept"], self.candidates["why"] = ("recgs" if keep else "plain"), why
+        if not keep:
+            tr.restore(self.plain)
+            tr.best_step = self.plain.get("step")
+            self.drop_reason = f"the held-out photos do not show the caustic-free model better ({why})"
+
+    @torch.no_grad()
+    def _scores(self, snap: dict) -> dict:
+        """How a model (a ``snapshot()``) does on the held-out views: PSNR against the photos as
+        captured, the mean data term of the gain likelihood against them (lower is more likely;
+        where one was fitted) and PSNR against ground truth (where the survey has it, reported
+        only)."""
+        tr = self.trainer
+        ids = tr.heldout_ids()
+        out: dict = {}
+        if not ids:
+            return out
+        with tr.using(snap):
+            cap, nll, gt = [], [], []
+            for i in ids:
+                rgb = tr.render_view(i).clamp(0, 1)
+                photo = self.data.view(i, 1)[1]
+                cap.append(psnr(rgb, photo))
+                if self.gain_model is not None:
+                    w = rgb.clamp(0.02, 1.0)
+                    nll.append(float((w * self.gain_model(likelihood.log_ratio(photo, rgb))).mean() / w.mean()))
+                g = self.data.gt_view(i)
+                if g is not None:
+                    gt.append(psnr(rgb, g))
+        out["psnr_captured"] = round(sum(cap) / len(cap), 4)
+        if nll:
+            out["nll"] = round(sum(nll) / len(nll), 5)
+        if gt:
+            out["psnr_gt"] = round(sum(gt) / len(gt), 4)
+        return out
 
     @torch.no_grad()
     def restore_gain(self) -> list:
@@ -360,11 +506,14 @@ class RecGS(Method):
         return p
 
     def state_bytes(self) -> int:
-        """The maps and the targets, float16 (H, W, 3) each, of every training view."""
+        """The maps and the targets, float16 (H, W, 3) each, of every training view (likelihood:
+        a light map, float16 (H, W), of each view a refit renders)."""
+        if self._likelihood:
+            return 2 * self.data.training_pixels(self._fit_views())
         return (6 + self.targets.bytes_per_pixel()) * self.data.training_pixels()
 
     def summary(self) -> dict:
-        return {**super().summary(), "caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,
+        return {**super().summary(), "candidates": self.candidates, "caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,
                 "psnr_heldout_plain": (self.plain or {}).get("score"), "colour_gain": self.gain,
                 "light_gain": [round(float(x), 4) for x in self.light_gain] if self._lightfield else None}
 
@@ -377,6 +526,8 @@ class RecGS(Method):
             "plain": None if self.plain is None else {
                 **self.plain, "params": {n: v.cpu() for n, v in self.plain["params"].items()}},
             "misses": self.misses, "drop_reason": self.drop_reason, "light_gain": self.light_gain.clone(),
+            "gain_model": None if self.gain_model is None else self.gain_model.state_dict(),
+            "converged_at": self.converged_at,
         }
         return s
 
@@ -390,8 +541,13 @@ class RecGS(Method):
         self.misses, self.drop_reason = cs.get("misses", 0), cs.get("drop_reason")
         if "light_gain" in cs:
             self.light_gain = cs["light_gain"].clone()
+        self.converged_at = cs.get("converged_at")
+        if cs.get("gain_model") is not None:
+            self.gain_model = likelihood.GainLikelihood.from_state(cs["gain_model"])
         if self.stage != "warmup":
             self.targets.loss_kind = self.ccfg.fit_loss
+            if self.gain_model is not None and not self.dropped:
+                self._use_likelihood()
         if self.dropped:
             self._plain_loss()
         self._set_maps({int(i): m.to(self.trainer.device) for i, m in cs["maps"].items()})

@@ -115,7 +115,8 @@ def training_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: floa
                   weight: Optional[torch.Tensor] = None, kind: str = "l1",
                   fast_ssim: Optional[Callable] = None):
     """(1 - lambda) D + lambda (1 - SSIM), with D the mean absolute error (``kind="l1"``, as
-    INRIA 3DGS and RecGS) or the mean squared error (``"l2"``). ``render``, ``target``:
+    INRIA 3DGS and RecGS), the mean squared error (``"l2"``) or the mean of ``kind(render,
+    target)`` (a function giving (H, W, 3): a caustic likelihood, core/caustics/likelihood.py). ``render``, ``target``:
     (H, W, 3). ``weight`` (H, W), optional: how much each pixel counts; both terms become
     weighted means over the pixels (the SSIM term of each pixel's window), so a weight of 1
     everywhere gives the plain loss. ``fast_ssim``: another implementation of
@@ -125,10 +126,13 @@ def training_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: floa
 
     Where views disagree about a point (moving light), an L1 fit takes the *median* of what
     they show and an L2 fit the *mean*; benchmarks/pointwise_bound.py measures the two."""
-    if kind not in ("l1", "l2"):
-        raise ValueError(f"unknown loss kind {kind!r} (l1 or l2)")
-    d = render - target
-    d = d.abs() if kind == "l1" else d * d
+    if callable(kind):   # a data term of its own: (render, target) -> (H, W, 3) per pixel and channel
+        d = kind(render, target)
+    elif kind in ("l1", "l2"):
+        d = render - target
+        d = d.abs() if kind == "l1" else d * d
+    else:
+        raise ValueError(f"unknown loss kind {kind!r} (l1, l2 or a function)")
     if weight is None:
         loss = (1.0 - lambda_dssim) * d.mean()
     else:

@@ -33,7 +33,8 @@ class Objective:
 
     #: whether the loss keeps its SSIM term (``TrainConfig.lambda_dssim``) for this objective
     use_ssim = True
-    #: the data term: "l1" (the median of what the views show) or "l2" (their mean)
+    #: the data term: "l1" (the median of what the views show), "l2" (their mean), or a function
+    #: (render, target) -> (H, W, 3) per-pixel term (losses.training_loss)
     loss_kind = "l1"
 
     def target(self, index: int, image: torch.Tensor,
