@@ -16,6 +16,10 @@ Surveys (generated once with tools/make_survey.py into OUT/surveys, reused after
 * ``dense`` (not in the default list): 48 views with 85 % / 80 % overlap, so each point is
   seen by about three times as many photos as in the sample.
 
+The ``dive-*`` kinds are video-like: 144 frames in six overlapping rows (``dive-wander`` along a
+wandering track), a median of about ten training views a point, caustics drifting smoothly with
+time (``networks``, ``mild``, ``broad``, ``none`` as above).
+
 Every survey but the sample has a seed of its own. Methods: ``3dgs``, ``filter2d``, ``joint``,
 ``oracle`` (plain 3DGS on the clean images), ``recgs`` (the defaults: k from the residual
 spectrum, additive, the best held-out model kept), ``recgs-last`` (the same ending with its
@@ -29,9 +33,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,6 +62,20 @@ SURVEYS = {
     # point is what no consistency-based method can tell from texture; see docs/caustics.md)
     "dense": ["--views", "48", "--seed", "1", "--overlap", "0.85", "--sidelap", "0.8"],
 }
+# Dive-like surveys: 144 frames along six overlapping rows (85 % forward, 70 % side overlap), each
+# seabed point in a median of about ten training views, and the caustics drifting smoothly from
+# frame to frame, 0.33 s apart, as in a video (neighbouring frames share much of their light).
+DIVE = ["--views", "144", "--width", "320", "--height", "240", "--lines", "6", "--overlap", "0.85",
+        "--sidelap", "0.7", "--caustic-motion", "smooth", "--caustic-dt", "0.33"]
+SURVEYS.update({
+    "dive-networks": DIVE + ["--seed", "32", "--caustic-pattern", "voronoi", "--caustic-strength", "0.9"],
+    "dive-mild": DIVE + ["--seed", "31", "--caustic-pattern", "voronoi", "--caustic-strength", "0.35"],
+    "dive-broad": DIVE + ["--seed", "33", "--caustic-pattern", "waves", "--caustic-scale", "12",
+                          "--caustic-blur", "0.3", "--caustic-strength", "1.0"],
+    "dive-none": DIVE + ["--seed", "34", "--caustic-strength", "0"],
+    "dive-wander": DIVE + ["--seed", "35", "--path", "wander", "--caustic-pattern", "voronoi",
+                           "--caustic-strength", "0.6"],
+})
 # Every method on one density control (adc, the caustic modes' default; plain 3DGS alone
 # defaults to mcmc), so that a method's score is the method's, not its densification's.
 METHODS = {
@@ -68,6 +88,7 @@ METHODS = {
     "recgs-trim": ["--mode", "recgs", "--robust-k", "1.5"],
     "recgs-consensus": ["--mode", "recgs", "--estimator", "consensus"],
     "recgs-lowpass": ["--mode", "recgs", "--estimator", "lowpass", "--fit-loss", "l1"],
+    "recgs-likelihood": ["--mode", "recgs", "--estimator", "likelihood"],
     "recgs-lf": ["--mode", "recgs", "--estimator", "lightfield", "--fit-loss", "l1"],
     "recgs-l2": ["--mode", "recgs", "--estimator", "lowpass", "--fit-loss", "l2"],
     "recgs-lf-l2": ["--mode", "recgs", "--estimator", "lightfield", "--fit-loss", "l2"],
@@ -88,15 +109,19 @@ def survey_dir(out: Path, name: str) -> Path:
     return d
 
 
-def run_method(scene: Path, out: Path, method: str, minutes: float, extra: list[str]) -> dict:
-    """Run one method on one survey through the job runner (skipped where its metrics exist)."""
+def run_method(scene: Path, out: Path, method: str, minutes: float, extra: list[str], threads: int = 0) -> dict:
+    """Run one method on one survey through the job runner (skipped where its metrics exist), on
+    ``threads`` threads (0: the machine's default)."""
     metrics = out / "metrics.json"
     if metrics.is_file():
         return json.loads(metrics.read_text())
     cmd = [sys.executable, "-m", "recgs_addon", "train", str(scene), "--out", str(out),
            "--max-minutes", str(minutes), *METHODS[method], *extra]
     t = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    env = dict(os.environ)
+    if threads:
+        env.update({k: str(threads) for k in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS")})
+    proc = subprocess.run(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     if proc.returncode != 0:
         raise SystemExit(f"{method} on {scene} failed:\n{proc.stderr[-2000:]}")
     m = json.loads(metrics.read_text())
@@ -104,6 +129,11 @@ def run_method(scene: Path, out: Path, method: str, minutes: float, extra: list[
           f"{m['seconds']:6.1f} s, {m['gaussians']} Gaussians, wall {time.perf_counter() - t:.0f} s, "
           f"train decaustic {m.get('psnr_decaustic_gt')}, {m['reason']}", flush=True)
     return m
+
+
+def _clean(survey: str) -> bool:
+    """A survey without caustics (its photos are the ground truth)."""
+    return survey == "none" or survey.endswith("-none")
 
 
 def main(argv=None) -> int:
@@ -116,6 +146,8 @@ def main(argv=None) -> int:
     p.add_argument("--large-minutes", type=float, default=5.0, help="wall-clock limit per run on 'large'")
     p.add_argument("--quick", action="store_true", help="downscale 2 and 0.5 min per run (smoke test)")
     p.add_argument("--extra", default="", help="more runner options for every run, space separated")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="runs at once, each on cores / jobs threads (the same for every method)")
     args = p.parse_args(argv)
     surveys = [s for s in args.surveys.split(",") if s]
     refine = set(args.refinements.split(","))
@@ -123,18 +155,25 @@ def main(argv=None) -> int:
     extra = args.extra.split()
     if args.quick:
         extra += ["--downscale", "2"]
+    threads = max(1, (os.cpu_count() or 1) // args.jobs) if args.jobs > 1 else 0
+    runs = []
     for s in surveys:
         scene = survey_dir(args.out, s)
         methods = [m for m in args.methods.split(",") if m]
         if s in refine:
             methods += ["recgs-k9", "recgs-mult"]
-        if s == "none":  # oracle is 3dgs here; the question is only whether recgs stays out of the way
+        if _clean(s):  # oracle is 3dgs here; the question is only whether recgs stays out of the way
             methods = [m for m in methods if m != "oracle"]
         minutes = 0.5 if args.quick else (args.large_minutes if s == "large" else args.minutes)
         results[s] = {}
-        for m in methods:
-            results[s][m] = run_method(scene, args.out / s / m, m, minutes, extra)
-        if s == "none" and "3dgs" in results[s]:
+        runs += [(s, m, scene, minutes) for m in methods]
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        done = {(s, m): pool.submit(run_method, scene, args.out / s / m, m, minutes, extra, threads)
+                for s, m, scene, minutes in runs}
+        for (s, m), f in done.items():
+            results[s][m] = f.result()
+    for s in surveys:
+        if _clean(s) and "3dgs" in results[s]:
             results[s]["oracle"] = results[s]["3dgs"]
     all_methods = list(METHODS)
     path = write_benchmark_report(args.out, surveys, [m for m in all_methods if any(m in r for r in results.values())],

@@ -326,7 +326,8 @@ def test_recgs_job_writes_caustic_outputs_and_report(caustic_scene, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["recurrences"] and np.isfinite(m["psnr_decaustic_gt"]) and np.isfinite(m["psnr_test_gt"])
     train_names = sorted(p.name for p in (caustic_scene / "images").iterdir())
-    test_names = train_names[::5]
+    test_names = train_names[2::5]       # every 5th from half a period in
+    assert m["test_views"] == test_names
     for name in train_names:
         stem = name[:-4]
         if name in test_names:
@@ -356,11 +357,16 @@ def test_benchmark_report_table_plots_and_gap(tmp_path):
     results = {"sample": {"3dgs": run(17.0, [(50, 16.0), (110, 17.0)]),
                           "oracle": run(21.0, [(50, 19.0), (110, 21.0)]),
                           "recgs": {**run(20.0, [(50, 16.5), (110, 19.0), (250, 20.0)]),
-                                    "gaussians": 20500, "iterations": 1500}}}
+                                    "gaussians": 20500, "iterations": 1500, "psnr_captured_gt": 18.5,
+                                    "coverage": {"points": 900, "median_views": 9.0, "median_passes": 2.0},
+                                    "candidates": {"recgs": {"psnr_gt": 20.0}, "plain": {"psnr_gt": 17.0},
+                                                   "kept": "plain", "why": "test"}}}}
     path = write_benchmark_report(tmp_path, ["sample"], ["3dgs", "oracle", "recgs"], results)
     text = path.read_text()
-    assert ("| sample | 17.00 dB / 0.425, 110 s | 21.00 dB / 0.525, 110 s | "
-            "20.00 dB / 0.500, 20.5k G, 1500 steps, 250 s | 0.75 |") in text
+    assert ("| sample | 9 / 2 | 18.50 | 17.00 dB / 0.425, 110 s | 21.00 dB / 0.525, 110 s | "
+            "20.00 dB / 0.500, 20.5k G, 1500 steps, 250 s | recgs: 0.75 |") in text
+    # keeping the plain model when the caustic-free one was 3 dB better by ground truth is wrong
+    assert "Right 0 of 1." in text and "| sample | recgs | plain | 20.00 | 17.00 | **no** | test |" in text
     assert "| recgs | 16.50 | 19.00 | 20.00 |" in text  # last evaluation before 1, 2 and 5 minutes
     for name in ("psnr_time_sample.png", "ssim_time_sample.png"):
         assert (tmp_path / name).stat().st_size > 1000

@@ -9,6 +9,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..io.atomic import atomic_path
+from ..train.plan import MIN_PASSES, coverage_advice
 from . import plot
 
 
@@ -64,6 +65,20 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
         lines += ["", f"Held-out PSNR (against {what}) against training time and against model size: "
                   f"speed and size next to their error.{when}", "",
                   "![PSNR against time](report/psnr_time.png) ![PSNR against Gaussians](report/psnr_size.png)"]
+    cov = metrics.get("coverage")
+    if cov and cov.get("points"):
+        hist_c = cov["histogram"]
+        plot.line_chart(rd / "coverage.png", [("seabed points", list(range(len(hist_c))), hist_c)],
+                        title="Training views that see each seabed point", xlabel="views (30 = 30 or more)",
+                        ylabel="points")
+        lines += ["", "## Coverage: views per seabed point", "",
+                  f"Each point of the model's surface is seen by a median of {cov['median_views']:g} training views "
+                  f"in {cov['median_passes']:g} passes (frames less than a second apart count as one pass: they saw "
+                  f"nearly the same light). {100 * cov['share_below']['5']:.0f} % of the points are seen by fewer "
+                  "than 5 views.", ""]
+        if cov["median_passes"] < MIN_PASSES and cfg.get("mode") in ("recgs", "filter2d", "joint"):
+            lines += [coverage_advice(cov["median_views"], cov["median_passes"]) + ".", ""]
+        lines += ["![coverage](report/coverage.png)"]
     sup = metrics.get("view_support")
     if sup:
         hist_v = sup["histogram"]
@@ -115,6 +130,34 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
     return path
 
 
+#: A decision between two models whose ground-truth scores differ by less than this is right
+#: either way (two 5-minute runs of the same method differ by about this much).
+DECISION_TIE_DB = 0.1
+
+
+def gap_recovered(row: dict) -> dict:
+    """(method - 3dgs) / (oracle - 3dgs) of held-out PSNR against ground truth, for every RecGS
+    method of a survey's row of runs (where the oracle beats plain)."""
+    try:
+        p3, po = row["3dgs"]["psnr_test_gt"], row["oracle"]["psnr_test_gt"]
+    except (KeyError, TypeError):
+        return {}
+    if p3 is None or po is None or po - p3 <= 1e-6:
+        return {}
+    return {m: (r["psnr_test_gt"] - p3) / (po - p3) for m, r in row.items()
+            if m.startswith("recgs") and r and r.get("psnr_test_gt") is not None}
+
+
+def decision_right(candidates: dict) -> Optional[bool]:
+    """Whether a RecGS run kept the better of its two models by ground truth (None where the
+    survey has none)."""
+    a, b = candidates["recgs"].get("psnr_gt"), candidates["plain"].get("psnr_gt")
+    if a is None or b is None:
+        return None
+    kept, other = (a, b) if candidates["kept"] == "recgs" else (b, a)
+    return kept >= other - DECISION_TIE_DB
+
+
 def write_benchmark_report(out: Path, surveys: Sequence[str], methods: Sequence[str], results: dict,
                            notes: Optional[list[str]] = None) -> Path:
     """``results[survey][method]`` = run metrics (metrics.json). Writes ``OUT/benchmark.md`` with
@@ -123,12 +166,18 @@ def write_benchmark_report(out: Path, surveys: Sequence[str], methods: Sequence[
     lines = ["# Caustic-removal benchmark", "",
              "Held-out PSNR / SSIM against the clean ground truth (dB), Gaussians (k = thousands), steps, "
              "time to the end of the run (s), PSNR of the caustic-free training images against ground "
-             "truth (dB), and the RecGS gap recovered = (recgs - 3dgs) / (oracle - 3dgs).", ""]
-    head = "| survey | " + " | ".join(methods) + " | gap recovered |"
-    lines += [head, "|" + "---|" * (len(methods) + 2)]
+             "truth (dB), and the RecGS gap recovered = (recgs - 3dgs) / (oracle - 3dgs). Views / passes per "
+             "point: the median training views that see a point of the model's surface, and the passes among "
+             "them (frames less than a second apart count as one); photos: the training photos as captured "
+             "against ground truth (dB).", ""]
+    head = "| survey | views / passes per point | photos | " + " | ".join(methods) + " | gap recovered |"
+    lines += [head, "|" + "---|" * (len(methods) + 4)]
     for s in surveys:
         row = results.get(s, {})
-        cells = []
+        cov = next((r.get("coverage") for r in row.values() if r and r.get("coverage")), None)
+        views = f"{cov['median_views']:g} / {cov['median_passes']:g}" if cov and cov.get("points") else "-"
+        photos = next((r.get("psnr_captured_gt") for r in row.values() if r and r.get("psnr_captured_gt")), None)
+        cells = [views, _f(photos)]
         for m in methods:
             r = row.get(m)
             if not r:
@@ -141,14 +190,22 @@ def write_benchmark_report(out: Path, surveys: Sequence[str], methods: Sequence[
             if r.get("psnr_decaustic_gt") is not None:
                 cell += f", train {_f(r['psnr_decaustic_gt'])}"
             cells.append(cell)
-        gap = "-"
-        try:
-            p3, po, pr = (row["3dgs"]["psnr_test_gt"], row["oracle"]["psnr_test_gt"], row["recgs"]["psnr_test_gt"])
-            if po - p3 > 1e-6:
-                gap = f"{(pr - p3) / (po - p3):.2f}"
-        except (KeyError, TypeError):
-            pass
+        gap = ", ".join(f"{m}: {g:.2f}" for m, g in gap_recovered(row).items()) or "-"
         lines.append(f"| {s} | " + " | ".join(cells) + f" | {gap} |")
+    decisions = [(s, m, r["candidates"]) for s in surveys for m, r in results.get(s, {}).items()
+                 if r and (r.get("candidates") or {}).get("kept")]
+    if decisions:
+        right = [decision_right(c) for _, _, c in decisions]
+        known = [x for x in right if x is not None]
+        lines += ["", "## Never worse than plain: the end-of-run decisions", "",
+                  "Each RecGS run ends by keeping its caustic-free model or the plain model it started "
+                  "from, judged on the held-out photos as captured. Held-out PSNR of both against ground "
+                  f"truth (dB); right = the kept model within {DECISION_TIE_DB} dB of the better one.", "",
+                  f"Right {sum(known)} of {len(known)}.", "",
+                  "| survey | method | kept | recgs (gt) | plain (gt) | right | why |", "|---|---|---|---|---|---|---|"]
+        for (s, m, c), ok in zip(decisions, right):
+            lines.append(f"| {s} | {m} | {c['kept']} | {_f(c['recgs'].get('psnr_gt'))} | {_f(c['plain'].get('psnr_gt'))} | "
+                         f"{'-' if ok is None else ('yes' if ok else '**no**')} | {c.get('why', '')} |")
     for s in surveys:
         runs = [(m, results.get(s, {}).get(m)) for m in methods]
         runs = [(m, [x for x in r["history"] if x.get("psnr_gt") is not None]) for m, r in runs if r and r.get("history")]
