@@ -336,10 +336,14 @@ def cmd_video(args) -> int:
 
     if args.every is None and args.frames < 1:
         return _fail(f"--frames must be at least 1, got {args.frames}")
-    if args.every is not None and args.every <= 0:
+    if args.every is not None and not (math.isfinite(args.every) and args.every > 0):
         return _fail(f"--every must be a positive number of seconds, got {args.every}")
     if not 0.0 <= args.min_registered <= 1.0:
         return _fail(f"--min-registered is a share of the frames, 0 to 1, got {args.min_registered}")
+    for name, value, low, high in (("--quality", args.quality, 1, 100), ("--overlap", args.overlap, 1, 10 ** 6),
+                                   ("--threads", args.threads, 1, 1024), ("--max-side", args.max_side, 0, 10 ** 6)):
+        if not low <= value <= high:
+            return _fail(f"{name} must be {low} to {high}, got {value}")
     options = VideoOptions(frames=args.frames, every_s=args.every, max_side=args.max_side,
                            image_format=args.format, jpeg_quality=args.quality, threads=args.threads)
     stop = {"signal": None}
