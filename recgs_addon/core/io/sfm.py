@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import json
 import shutil
-import sqlite3
 import threading
 import time
 from dataclasses import dataclass
@@ -35,8 +34,12 @@ from .atomic import atomic_path
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 #: Ways of choosing the image pairs to match.
 MATCHING = ("exhaustive", "sequential")
-#: Seconds between two looks at a running pycolmap step (progress, cancel requests).
+#: Seconds between two looks at a running pycolmap call (progress, cancel requests).
 POLL_S = 0.25
+#: Feature extraction and sequential matching run in about this many calls, each a progress
+#: report. Progress is never read from the database while COLMAP writes it: a second SQLite
+#: library in the process (Python's sqlite3) breaks SQLite's file locks there.
+PROGRESS_STEPS = 25
 
 
 @dataclass
@@ -156,24 +159,52 @@ def _sequential_pairing(o: "SfmOptions", loop_detection: bool = True):
     return pairing
 
 
-def pair_count(database: Path, o: "SfmOptions", n: int) -> int:
-    """How many image pairs the matching step matches (loop detection's pairs left out)."""
+def sequential_pairs(database: Path, o: "SfmOptions") -> list[tuple[str, str]]:
+    """The image pairs (names) sequential matching forms, in COLMAP's order (loop detection's
+    pairs left out): what pycolmap's own generator gives for the database's images."""
     import pycolmap
 
-    if o.matching == "exhaustive":
-        return n * (n - 1) // 2
     with contextlib.closing(pycolmap.Database.open(str(database))) as db:
-        return len(pycolmap.SequentialPairGenerator(_sequential_pairing(o, loop_detection=False), db).all_pairs())
+        names = {im.image_id: im.name for im in db.read_all_images()}
+        pairs = pycolmap.SequentialPairGenerator(_sequential_pairing(o, loop_detection=False), db).all_pairs()
+    return [(names[a], names[b]) for a, b in pairs]
 
 
-def _count_rows(database: Path, table: str) -> Optional[int]:
-    """Rows of a table of a database another thread is writing (None when it is busy)."""
-    try:
-        with contextlib.closing(sqlite3.connect(database.resolve().as_uri() + "?mode=ro", uri=True,
-                                                timeout=0.05)) as con:
-            return int(con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
-    except sqlite3.Error:
+def _images_with_features(database: Path) -> set:
+    """Names of the images the database holds keypoints and descriptors of."""
+    import pycolmap
+
+    if not database.exists():
+        return set()
+    with contextlib.closing(pycolmap.Database.open(str(database))) as db:
+        return {im.name for im in db.read_all_images()
+                if db.exists_keypoints(im.image_id) and db.exists_descriptors(im.image_id)}
+
+
+def _camera_id(database: Path) -> Optional[int]:
+    """The id of the database's (first) camera, None when it has none yet."""
+    import pycolmap
+
+    if not database.exists():
         return None
+    with contextlib.closing(pycolmap.Database.open(str(database))) as db:
+        cameras = db.read_all_cameras()
+    return min(c.camera_id for c in cameras) if cameras else None
+
+
+def _unmatched(database: Path, pairs: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """The pairs of ``pairs`` whose matches and two-view geometry the database lacks."""
+    import pycolmap
+
+    with contextlib.closing(pycolmap.Database.open(str(database))) as db:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        return [(a, b) for a, b in pairs
+                if not (db.exists_matches(ids[a], ids[b]) and db.exists_two_view_geometry(ids[a], ids[b]))]
+
+
+def _chunks(items: list, n: int) -> list[list]:
+    size = max(1, -(-len(items) // max(1, n)))
+    return [items[i:i + size] for i in range(0, len(items), size)]
 
 
 def _changes_only(report: Callable[[str, int, int], None]) -> Callable[[str, int, int], None]:
@@ -187,7 +218,7 @@ def _changes_only(report: Callable[[str, int, int], None]) -> Callable[[str, int
     return call
 
 
-def _run(fn, should_stop: Callable[[], bool], poll: Callable[[], None], **kwargs):
+def _run(fn, should_stop: Callable[[], bool], poll: Callable[[], None] = lambda: None, **kwargs):
     """``fn(**kwargs, cancellation_token=...)`` in a worker thread (pycolmap releases the GIL),
     while this thread calls ``poll`` and cancels the call once ``should_stop()`` is true (so
     SIGTERM/SIGINT handlers run here at once). Raises Cancelled when it was cancelled."""
@@ -226,8 +257,8 @@ def reconstruct(image_dir: str | Path, model_dir: str | Path, database: str | Pa
     steps its marker (:func:`steps_path`) records as complete with the same settings are
     reused and a stopped step continues. ``on_progress(phase, done, total)`` is called with
     phase ``features`` (images with features of all photos), ``matching`` (image pairs
-    matched of all pairs to match) and ``mapping`` (images registered so far of all photos),
-    from the calling thread. ``should_stop()``, asked a few times a second, stops the run:
+    matched of all pairs to match; exhaustive matching reports only its start and end) and
+    ``mapping`` (images registered so far of all photos), from the calling thread. ``should_stop()``, asked a few times a second, stops the run:
     Cancelled is raised, the database keeps what was done. Raises SceneError when no model of
     at least ``options.min_registered`` images could be built; ``model_dir`` is only written
     on success (under a temporary name first).
@@ -256,13 +287,6 @@ def reconstruct(image_dir: str | Path, model_dir: str | Path, database: str | Pa
     reused = []
     n = len(names)
 
-    def poll_rows(phase: str, table: str, total: int):
-        def poll():
-            rows = _count_rows(database, table)
-            if rows is not None:
-                report(phase, min(rows, total), total)
-        return poll
-
     # -- features ----------------------------------------------------------------------------
     if steps.get("features", {}).get("done"):
         reused.append("features")
@@ -271,12 +295,10 @@ def reconstruct(image_dir: str | Path, model_dir: str | Path, database: str | Pa
         t = time.perf_counter()
         steps["features"] = {"key": o.feature_key(names), "done": False}
         _write_steps(marker, steps)
-        report("features", (_count_rows(database, "keypoints") or 0) if database.exists() else 0, n)
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = o.camera_model
-        with contextlib.closing(pycolmap.Database.open(str(database))) as db:
-            if db.num_cameras() == 1:   # a stopped extraction: its images keep the one camera
-                reader.existing_camera_id = next(iter(db.read_all_cameras())).camera_id
+        have = _images_with_features(database)      # a stopped extraction's images are kept
+        todo = [name for name in names if name not in have]
+        done = n - len(todo)
+        report("features", done, n)
         ext = pycolmap.FeatureExtractionOptions()
         ext.num_threads = o.threads
         ext.sift.peak_threshold = o.peak_threshold
@@ -286,21 +308,28 @@ def reconstruct(image_dir: str | Path, model_dir: str | Path, database: str | Pa
             ext.sift.first_octave = o.first_octave
         if o.max_num_features is not None:
             ext.sift.max_num_features = o.max_num_features
-        _run(pycolmap.extract_features, stop, poll_rows("features", "keypoints", n),
-             database_path=database, image_path=image_dir, image_names=names,
-             camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader, extraction_options=ext,
-             device=pycolmap.Device.cpu)
+        for chunk in _chunks(todo, PROGRESS_STEPS):
+            reader = pycolmap.ImageReaderOptions()
+            reader.camera_model = o.camera_model
+            camera = _camera_id(database)
+            if camera is not None:      # later calls add their images to the one camera
+                reader.existing_camera_id = camera
+            _run(pycolmap.extract_features, stop, database_path=database, image_path=image_dir, image_names=chunk,
+                 camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader, extraction_options=ext,
+                 device=pycolmap.Device.cpu)
+            done += len(chunk)
+            report("features", done, n)
         steps["features"]["done"] = True
         _write_steps(marker, steps)
         seconds["features"] = time.perf_counter() - t
-        report("features", n, n)
 
     # -- matches -----------------------------------------------------------------------------
-    pairs = pair_count(database, o, n)
+    pair_list = sequential_pairs(database, o) if o.matching == "sequential" else []
+    total = n * (n - 1) // 2 if o.matching == "exhaustive" else len(pair_list)
     done_matches = steps.get("matches", {})
     if done_matches.get("key") == o.match_key() and done_matches.get("done"):
         reused.append("matching")
-        report("matching", pairs, pairs)
+        report("matching", total, total)
     else:
         t = time.perf_counter()
         if done_matches.get("key") != o.match_key():   # other pairs were matched: start afresh
@@ -311,18 +340,34 @@ def reconstruct(image_dir: str | Path, model_dir: str | Path, database: str | Pa
         _write_steps(marker, steps)
         match = pycolmap.FeatureMatchingOptions()
         match.num_threads = o.threads
-        kwargs = dict(database_path=database, matching_options=match, device=pycolmap.Device.cpu)
+        common = dict(database_path=database, matching_options=match, device=pycolmap.Device.cpu)
         if o.matching == "exhaustive":
-            fn = pycolmap.match_exhaustive
+            report("matching", 0, total)
+            _run(pycolmap.match_exhaustive, stop, **common)
+        elif any(c.isspace() for a, b in pair_list for c in a + b):
+            report("matching", 0, total)   # a pair list cannot name these images: one call
+            _run(pycolmap.match_sequential, stop, pairing_options=_sequential_pairing(o), **common)
         else:
-            fn = pycolmap.match_sequential
-            kwargs["pairing_options"] = _sequential_pairing(o)
-        report("matching", 0, pairs)
-        _run(fn, stop, poll_rows("matching", "matches", pairs), **kwargs)
+            todo = _unmatched(database, pair_list)      # a stopped matching's pairs are kept
+            done = total - len(todo)
+            report("matching", done, total)
+            listing = database.with_name(database.stem + ".pairs.txt")
+            try:
+                for chunk in _chunks(todo, PROGRESS_STEPS):
+                    listing.write_text("".join(f"{a} {b}\n" for a, b in chunk), encoding="utf-8")
+                    pairing = pycolmap.ImportedPairingOptions()
+                    pairing.match_list_path = str(listing)
+                    _run(pycolmap.match_image_pairs, stop, pairing_options=pairing, **common)
+                    done += len(chunk)
+                    report("matching", done, total)
+            finally:
+                listing.unlink(missing_ok=True)
+            if o.vocab_tree:   # the loop-detection pairs (the sequential ones are matched: skipped)
+                _run(pycolmap.match_sequential, stop, pairing_options=_sequential_pairing(o), **common)
         steps["matches"]["done"] = True
         _write_steps(marker, steps)
         seconds["matching"] = time.perf_counter() - t
-        report("matching", pairs, pairs)
+        report("matching", total, total)
 
     # -- mapping -----------------------------------------------------------------------------
     t = time.perf_counter()
