@@ -1,4 +1,4 @@
-"""The training engine: torch and numba, installed on request into a per-user folder (no bpy here).
+"""The training engine: torch, numba and PyAV, installed on request into a per-user folder (no bpy here).
 
 torch is too large to bundle in the extension zip, so the artist installs it with one click
 (``blender/engine.py``): pip runs in a background process with ``--target`` pointing at
@@ -25,8 +25,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
 
+#: PyAV: video decoding for Import Video (``python -m recgs_addon video``, core/io/video.py);
+#: its wheels carry FFmpeg (Python 3.9+ stable ABI: one wheel serves Blender 4.2-5.2's Pythons).
+PYAV_REQUIREMENT = "av==18.1.0"
 #: What the engine always holds. torch 2.13.0 is the version the trainer is tested with.
-ENGINE_REQUIREMENTS = ("torch==2.13.0",)
+ENGINE_REQUIREMENTS = ("torch==2.13.0", PYAV_REQUIREMENT)
 #: numba: the rasterizer's compiler-free fast path (core/render/numba_kernels.py; LLVM ships in
 #: its wheels, for Python 3.10-3.13 on Linux, Windows and macOS, x64 and arm64). Only the worker
 #: imports it; without it training runs on eager torch (slower, same numbers).
@@ -79,11 +82,14 @@ def engine_info(site: Path) -> dict:
 def update_reason(info: dict, wanted: Optional[Sequence[str]] = None) -> Optional[str]:
     """Why an installed engine (its :func:`engine_info`) should be installed again, or None:
     it lacks numba where this Python's numpy takes it (an engine from before numba was part of
-    it: training then runs on eager torch, about 2.5x slower), or its torch is not the pinned
-    one. ``wanted``: the requirements now (default :func:`engine_requirements`)."""
+    it: training then runs on eager torch, about 2.5x slower), it lacks PyAV (an engine from
+    before Import Video), or its torch is not the pinned one. ``wanted``: the requirements now
+    (default :func:`engine_requirements`)."""
     wanted = engine_requirements() if wanted is None else tuple(wanted)
     if any(r.startswith("numba==") for r in wanted) and not info.get("numba"):
         return "no numba: training runs on the slower eager path"
+    if any(r.startswith("av==") for r in wanted) and not info.get("av"):
+        return "no PyAV: Import Video needs it"
     pin = next((r.split("==", 1)[1] for r in wanted if r.startswith("torch==")), None)
     have = str(info.get("torch") or "?").split("+")[0]
     if pin is not None and have != pin:
@@ -125,7 +131,7 @@ def _numpy_version() -> Optional[str]:
 
 
 def engine_requirements(numpy_version: Optional[str] = "") -> tuple:
-    """What to install: torch, and numba pinned to the numpy of the Python that installs (``""``:
+    """What to install: torch, PyAV, and numba pinned to the numpy of the Python that installs (``""``:
     this one's; Blender's). pip ``--target`` installs dependencies again into the engine, which
     comes first on the worker's ``PYTHONPATH``: an engine numpy of another version would shadow
     Blender's there, the same version is harmless. numba is left out where that numpy is
@@ -305,7 +311,9 @@ class Installer:
         code = ("import json, torch\n"
                 "try:\n    import numba; nb = numba.__version__\n"
                 "except Exception:\n    nb = None   # optional: training then runs on eager torch\n"
-                "print(json.dumps({'torch': torch.__version__, 'numba': nb, 'file': torch.__file__}))")
+                "try:\n    import av; pyav = av.__version__\n"
+                "except Exception:\n    pyav = None   # Import Video then asks for an update\n"
+                "print(json.dumps({'torch': torch.__version__, 'numba': nb, 'av': pyav, 'file': torch.__file__}))")
         env = dict(os.environ, PYTHONPATH=str(self.tmp), PYTHONNOUSERSITE="1")
         r = subprocess.run([self.python, "-c", code], capture_output=True, text=True, env=env, timeout=300)
         if r.returncode != 0:

@@ -88,7 +88,8 @@ def test_progress_lines():
 def test_pip_command(monkeypatch):
     monkeypatch.delenv(ei.PIP_ARGS_ENV, raising=False)
     cmd = ei.pip_command("/t", platform="linux", requirements=ei.engine_requirements("1.26.4"))
-    assert cmd[-3:] == ["torch==2.13.0", "numba==0.61.2", "numpy==1.26.4"] and cmd[cmd.index("--target") + 1] == "/t"
+    assert cmd[-4:] == ["torch==2.13.0", "av==18.1.0", "numba==0.61.2", "numpy==1.26.4"]
+    assert cmd[cmd.index("--target") + 1] == "/t"
     assert cmd[cmd.index("--extra-index-url") + 1] == ei.TORCH_CPU_INDEX
     assert "--extra-index-url" not in ei.pip_command("/t", platform="win32")
     monkeypatch.setenv(ei.PIP_ARGS_ENV, "--index-url http://mirror/simple")
@@ -100,10 +101,11 @@ def test_engine_requirements_pin_numba_to_blenders_numpy():
     """numba comes with the numpy of the Python that installs (pip --target puts a copy in the
     engine, ahead of Blender's on the worker's path: the same version is harmless); without a
     numpy in numba's range the engine is torch alone (training on eager torch)."""
-    assert ei.engine_requirements("1.26.4") == ("torch==2.13.0", ei.NUMBA_REQUIREMENT, "numpy==1.26.4")
+    assert ei.engine_requirements("1.26.4") == ("torch==2.13.0", ei.PYAV_REQUIREMENT, ei.NUMBA_REQUIREMENT,
+                                                "numpy==1.26.4")
     assert ei.engine_requirements("2.2.6")[-1] == "numpy==2.2.6"
     for v in ("1.23.5", "2.3.0", None, "garbage"):
-        assert ei.engine_requirements(v) == ei.ENGINE_REQUIREMENTS == ("torch==2.13.0",), v
+        assert ei.engine_requirements(v) == ei.ENGINE_REQUIREMENTS == ("torch==2.13.0", "av==18.1.0"), v
     assert ei.pip_command("/t")[-1] == ei.engine_requirements()[-1]    # the default: this Python's numpy
 
 
@@ -154,3 +156,11 @@ def test_an_engine_without_numba_or_with_another_torch_asks_for_an_update(tmp_pa
     info = ei.engine_info(ei.installed_engine(tmp_path))
     assert (ei.update_reason(info, wanted) is None) == bool(info.get("numba"))
     assert "no numba" in ei.update_reason({**info, "numba": None}, wanted)
+
+
+def test_an_engine_without_pyav_asks_for_an_update():
+    """An engine installed before Import Video has torch and numba but no PyAV: the panel offers
+    *Update Training Engine*; the marker records the PyAV the install holds."""
+    wanted = ("torch==2.13.0", "av==18.1.0", "numba==0.61.2", "numpy==1.26.4")
+    assert "no PyAV" in ei.update_reason({"torch": "2.13.0+cpu", "numba": "0.61.2"}, wanted)
+    assert ei.update_reason({"torch": "2.13.0+cpu", "numba": "0.61.2", "av": "18.1.0"}, wanted) is None

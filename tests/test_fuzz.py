@@ -278,12 +278,13 @@ def test_colmap_truncated_rigs_and_frames_name_the_file(tmp_path, colmap_models,
 
 ARG = st.one_of(st.sampled_from(["--out", "--iterations", "--budget", "--downscale", "--sh-degree", "--images",
                                  "--max-minutes", "-1", "0", "nan", "1e9", "abc", "", "--", "missing_dir",
-                                 "data/sample", "x.ply", "--holdout-every", "--seed", "--mode", "oracle"]),
+                                 "data/sample", "x.ply", "--holdout-every", "--seed", "--mode", "oracle",
+                                 "--every", "--frames", "x.mp4"]),
                 st.text(alphabet="abc-_./0123456789", max_size=8))
 
 
 @FUZZ
-@given(command=st.sampled_from(["info", "import", "train", "render", "sfm"]), args=st.lists(ARG, max_size=6))
+@given(command=st.sampled_from(["info", "import", "train", "render", "sfm", "video"]), args=st.lists(ARG, max_size=6))
 def test_cli_arguments(tmp_path_factory, capsys, command, args):
     """Random command lines that cannot run (no survey is complete under a fresh folder): the
     CLI ends with a non-zero code and an error line, never a traceback. argparse's own usage
@@ -291,7 +292,7 @@ def test_cli_arguments(tmp_path_factory, capsys, command, args):
     from recgs_addon.cli import main
     SEEN["cli"] = SEEN.get("cli", 0) + 1
     work = tmp_path_factory.mktemp("cli")
-    argv = [command] + [a if a not in ("missing_dir", "x.ply") else str(work / a) for a in args]
+    argv = [command] + [a if a not in ("missing_dir", "x.ply", "x.mp4") else str(work / a) for a in args]
     if "data/sample" in argv and command in ("train", "import", "render", "sfm"):
         return        # a real survey would run a real job: not what this test is for
     cwd = os.getcwd()

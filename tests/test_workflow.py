@@ -183,6 +183,7 @@ def test_operator_errors_report_instead_of_raising(session, tmp_path, monkeypatc
     refused(bpy.ops.recgs.open_report, "Train first")
     refused(bpy.ops.recgs.export_images, "Train first", directory=str(tmp_path / "x"))
     refused(bpy.ops.recgs.reconstruct, "Set the Photo Folder")
+    refused(bpy.ops.recgs.import_video, "Set the Video File")
     s.mode, s.caustic_k = "recgs", 8
     refused(bpy.ops.recgs.train, "Caustic Filter Size must be odd")
     s.mode = "3dgs"
@@ -214,7 +215,7 @@ def test_operator_errors_report_instead_of_raising(session, tmp_path, monkeypatc
     s.scene_dir = ""
     dummy = jobs.Job("train", [sys.executable, "-c", "import time; time.sleep(60)"])
     training._begin(dummy, scene, object_name=name)
-    for op in (bpy.ops.recgs.train, bpy.ops.recgs.resume, bpy.ops.recgs.reconstruct):
+    for op in (bpy.ops.recgs.train, bpy.ops.recgs.resume, bpy.ops.recgs.reconstruct, bpy.ops.recgs.import_video):
         with pytest.raises(RuntimeError, match="already running"):
             op()
     assert bpy.ops.recgs.cancel() == {"FINISHED"}
@@ -390,7 +391,7 @@ def test_panel_draws_every_control(session):
     idle = snap.snapshot(bpy.context, running=False)
     for text in ("== RecGS ==", "== Scene ==", "== Training ==", "== Advanced (closed) ==", "== Output ==",
                  "== Preview (closed) ==", "Scene Folder:", "(recgs.import_colmap)", "(recgs.reconstruct)",
-                 "Mode: 3DGS", "Time Limit (min):", "Budget:", "Downscale:", "Caustic Filter Size:",
+                 "Video File:", "Frames: 180", "(recgs.import_video)", "Mode: 3DGS", "Time Limit (min):", "Budget:", "Downscale:", "Caustic Filter Size:",
                  "(recgs.train)", "(recgs.resume)", "(recgs.export_ply)", "(recgs.export_images)",
                  "(recgs.open_report)", f"{name}: 200 Gaussians"):
         assert text in idle, text

@@ -114,8 +114,8 @@ def draw_status(self, _context):
 
 
 class RECGS_OT_install_engine(bpy.types.Operator):
-    """Download and install the training engine (PyTorch for the CPU and numba: about 250 MB to
-    download, 1.1 GB installed) into the extension's user folder. Needs online access"""
+    """Download and install the training engine (PyTorch for the CPU, numba, and PyAV for Import
+    Video: about 290 MB to download, 1.2 GB installed) into the extension's user folder. Needs online access"""
     bl_idname = "recgs.install_engine"
     bl_label = "Install Training Engine"
 

@@ -1,4 +1,4 @@
-"""Background jobs (``python -m recgs_addon train|sfm ...``) followed from Blender.
+"""Background jobs (``python -m recgs_addon train|sfm|video ...``) followed from Blender.
 
 This module does not touch ``bpy``: the sidebar's timer (``training.pump``) and the batch
 script both drive a :class:`Job` from Blender's main thread. A job is a separate process of
@@ -113,6 +113,15 @@ def train_command(scene_dir, out_dir, options: dict, init_ply=None, resume: bool
 def sfm_command(photo_dir, scene_dir, link: bool = False, overwrite: bool = False) -> list[str]:
     argv = ["sfm", str(photo_dir), "--out", str(scene_dir)]
     return command(*argv, *(["--link"] if link else []), *(["--overwrite"] if overwrite else []))
+
+
+def video_command(clip, scene_dir, frames: int, every_s: float = 0.0, max_side: Optional[int] = None) -> list[str]:
+    """The ``video`` command line: a spacing ``every_s`` > 0 replaces the count ``frames``."""
+    argv = ["video", str(clip), "--out", str(scene_dir)]
+    argv += ["--every", str(every_s)] if every_s > 0 else ["--frames", str(frames)]
+    if max_side is not None:
+        argv += ["--max-side", str(max_side)]
+    return command(*argv)
 
 
 def gaussian_signature(g) -> str:

@@ -1,6 +1,6 @@
 """The "RecGS" tab of the 3D viewport's sidebar (N panel).
 
-Scene (folder, Import COLMAP, Reconstruct from Photos), Training (settings, Train / Cancel /
+Scene (folder, Import COLMAP, Reconstruct from Photos, Import Video), Training (settings, Train / Cancel /
 Resume, live figures; Advanced folded away), Output (Export PLY, caustic-free images,
 report) and Preview (drawn by ``preview.draw_panel``). Panels only draw: every action is an
 operator, every figure comes from ``scene.recgs`` (written by ``training.pump``).
@@ -65,6 +65,17 @@ class VIEW3D_PT_recgs_scene(_RecGSPanel, bpy.types.Panel):
         row = box.row()
         row.enabled = not busy
         row.operator("recgs.reconstruct", icon="CAMERA_DATA")
+        box.separator()
+        box.prop(s, "video_path")
+        row = box.row(align=True)
+        sub = row.row(align=True)
+        sub.active = s.video_every <= 0
+        sub.prop(s, "video_frames")
+        row.prop(s, "video_every")
+        box.prop(s, "video_max_side")
+        row = box.row()
+        row.enabled = not busy
+        row.operator("recgs.import_video", icon="FILE_MOVIE")
 
 
 class VIEW3D_PT_recgs_training(_RecGSPanel, bpy.types.Panel):
@@ -112,7 +123,7 @@ def draw_progress(layout, s) -> None:
     if s.status in ("RUNNING", "CANCELLING"):
         box.prop(s, "progress", text="Progress", slider=True)
     col = box.column(align=True)
-    if s.job_kind == "sfm":
+    if s.job_kind in training.PHASE_SPANS:
         col.label(text=f"Elapsed: {training.format_seconds(s.elapsed)}")
     else:
         col.label(text=f"Iteration: {s.iteration:,}")

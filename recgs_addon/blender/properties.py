@@ -9,6 +9,9 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+from ..core.io.frame_choice import DEFAULT_FRAMES, MIN_FRAMES
+from ..core.io.video import DEFAULT_MAX_SIDE
+
 #: Folder settings may be relative to the .blend ("//..."); Blender 4.5+ wants that declared.
 _PATH = {"options": {"PATH_SUPPORTS_BLEND_RELATIVE"}} if bpy.app.version >= (4, 5, 0) else {}
 
@@ -45,6 +48,17 @@ class RecGSSettings(bpy.types.PropertyGroup):
     link_photos: BoolProperty(name="Link Photos", default=False,
                               description="Reconstruct: symlink the photos into the scene folder instead "
                                           "of copying them")
+    video_path: StringProperty(**_PATH, name="Video File", subtype="FILE_PATH",
+                               description="A clip of the survey (MP4, MOV, MKV): Import Video chooses sharp, "
+                                           "distinct frames, runs structure from motion on them and writes the "
+                                           "scene folder")
+    video_frames: IntProperty(name="Frames", default=DEFAULT_FRAMES, min=MIN_FRAMES, soft_max=1000,
+                              description="About this many frames of the clip (at most 4 a second of it)")
+    video_every: FloatProperty(name="Every", default=0.0, min=0.0, soft_max=10.0, unit="TIME_ABSOLUTE",
+                               description="One frame every this many seconds instead of a count (0: use Frames)")
+    video_max_side: IntProperty(name="Max Frame Side", default=DEFAULT_MAX_SIDE, min=0, soft_max=8192,
+                                description="Long side of the written frames at most this many pixels "
+                                            "(0: the clip's own size)")
     # -- training ----------------------------------------------------------------------------
     mode: EnumProperty(name="Mode", items=MODE_ITEMS, default="recgs",
                        description="What the job trains")

@@ -1,4 +1,4 @@
-"""The artist's workflow: train, follow, cancel, resume, reconstruct from photos, outputs.
+"""The artist's workflow: train, follow, cancel, resume, reconstruct from photos or a video, outputs.
 
 Jobs run as separate processes (:mod:`.jobs`); Blender data is only touched on the main
 thread, by :func:`pump` (a ``bpy.app.timers`` function in the UI, a plain loop in the batch
@@ -220,6 +220,40 @@ def start_reconstruction(scene, echo_stderr: bool = False) -> str:
     return f"Reconstructing {photos} into {target}"
 
 
+def start_video_import(scene, echo_stderr: bool = False) -> str:
+    """Run ``video`` on the Video File into the Scene Folder (default: CLIP_survey beside the
+    clip); the result is imported when the job ends. After a cancel, the same request
+    continues where the job stopped (the command resumes its steps)."""
+    _check_free()
+    s = scene.recgs
+    clip = _abspath(s.video_path)
+    if clip is None:
+        raise WorkflowError("Set the Video File (a clip of the survey)")
+    if not clip.is_file():
+        raise WorkflowError(f"{clip}: video file is missing")
+    if "av" in jobs.missing_modules(["av"]):
+        raise WorkflowError("Import Video needs PyAV, which comes with the training engine: click Install "
+                            "Training Engine (or Update Training Engine) in the RecGS preferences or sidebar, "
+                            "or choose a Python with PyAV in the preferences")
+    _check_modules("pycolmap", what="Import Video")
+    target = _abspath(s.scene_dir) or clip.parent / f"{clip.stem}_survey"
+    if (target / "sparse" / "0").exists():
+        raise WorkflowError(f"{target}: already has a COLMAP model (sparse/0); use Import COLMAP, or clear "
+                            "the Scene Folder to import the video beside it")
+    argv = jobs.video_command(clip, target, s.video_frames, s.video_every, s.video_max_side)
+    job = jobs.Job("video", argv, echo_stderr=echo_stderr)
+    s.scene_dir = str(target)
+    _begin(job, scene, scene_dir=str(target))
+    return f"Importing {clip} into {target}"
+
+
+#: Share of a job's progress bar each phase takes (start, span).
+PHASE_SPANS = {
+    "sfm": {"features": (0.0, 0.4), "matching": (0.4, 0.3), "mapping": (0.7, 0.3)},
+    "video": {"frames": (0.0, 0.2), "features": (0.2, 0.3), "matching": (0.5, 0.25), "mapping": (0.75, 0.25)},
+}
+
+
 def cancel() -> bool:
     """Ask the running job to stop (it checkpoints first). False if none runs."""
     a = _active
@@ -278,14 +312,23 @@ def wait(poll_s: float = 0.2, timeout: Optional[float] = None) -> str:
 
 def _apply(a: ActiveJob, s, ev: dict) -> None:
     kind = ev["event"]
-    if a.job.kind == "sfm":
+    if a.job.kind in PHASE_SPANS:
         if kind == "progress":
-            weights = {"features": (0.0, 0.4), "matching": (0.4, 0.3), "mapping": (0.7, 0.3)}
-            lo, span = weights.get(ev.get("phase"), (0.0, 1.0))
+            lo, span = PHASE_SPANS[a.job.kind].get(ev.get("phase"), (0.0, 1.0))
             done, total = ev.get("done", 0), max(1, ev.get("total", 1))
             s.phase = f"{ev.get('phase', '')} {done}/{total}"
+            if ev.get("chosen") is not None:
+                s.phase += f", {ev['chosen']} chosen"
             s.progress = min(1.0, lo + span * done / total)
             s.elapsed = float(ev.get("elapsed") or 0.0)
+        elif kind == "start" and a.job.kind == "video":
+            s.message = (f"{ev.get('codec')} {ev.get('width')}x{ev.get('height')}, {ev.get('duration_s')} s"
+                         + (", continuing the last import" if ev.get("resumed") else ""))
+        elif kind == "done" and ev.get("status") == "cancelled":
+            s.message = "cancelled; Import Video again continues where it stopped"
+        elif kind == "done" and a.job.kind == "video":
+            s.message = (f"{ev.get('chosen')} frames of {ev.get('frame_count')} chosen, registered "
+                         f"{ev.get('registered')}, {ev.get('points')} points")
         elif kind == "done":
             s.message = (f"registered {ev.get('registered')}/{ev.get('images')} photos, "
                          f"{ev.get('points')} points")
@@ -351,7 +394,7 @@ def _finish(a: ActiveJob, scene) -> None:
         s.message = msg.splitlines()[0] if msg else "failed"
         last_failure = msg
         print(f"RecGS: the {a.job.kind} job failed: {msg}", file=sys.stderr)
-    elif a.job.kind == "sfm" and status == "done":
+    elif a.job.kind in ("sfm", "video") and status == "done":
         s.progress = 1.0
         try:
             layer = bpy.context.view_layer if bpy.context.scene == scene else scene.view_layers[0]
@@ -390,8 +433,9 @@ def _ui_end() -> None:
 
 
 def status_line(s) -> str:
-    if s.job_kind == "sfm":
-        return f"RecGS reconstruct: {s.phase}, {format_seconds(s.elapsed)}"
+    if s.job_kind in PHASE_SPANS:
+        what = "video import" if s.job_kind == "video" else "reconstruct"
+        return f"RecGS {what}: {s.phase}, {format_seconds(s.elapsed)}"
     parts = [f"RecGS {s.status.lower()}: {s.phase}", f"iteration {s.iteration}", f"{s.gaussians:,} Gaussians"]
     if s.psnr_test >= 0:
         parts.append(f"held-out PSNR {s.psnr_test:.2f} dB")
@@ -513,6 +557,17 @@ class RECGS_OT_reconstruct(bpy.types.Operator):
         return _run(self, start_reconstruction, context.scene)
 
 
+class RECGS_OT_import_video(bpy.types.Operator):
+    """Choose sharp, distinct frames of the Video File and run structure from motion on them in the background (one camera, frames matched in time order), then import the survey"""
+
+    bl_idname = "recgs.import_video"
+    bl_label = "Import Video"
+    bl_options = {"REGISTER"}
+
+    def execute(self, context):
+        return _run(self, start_video_import, context.scene)
+
+
 def _job_out(context) -> Path:
     obj = context.active_object
     s = context.scene.recgs
@@ -596,7 +651,7 @@ def _show_text(context, text) -> bool:
         return False
 
 
-classes = (RECGS_OT_train, RECGS_OT_resume, RECGS_OT_cancel, RECGS_OT_reconstruct,
+classes = (RECGS_OT_train, RECGS_OT_resume, RECGS_OT_cancel, RECGS_OT_reconstruct, RECGS_OT_import_video,
            RECGS_OT_export_images, RECGS_OT_open_report)
 
 

@@ -15,3 +15,11 @@ class ImageError(RecGSError):
 
 class PlyError(RecGSError):
     """A PLY file cannot be read or does not hold Gaussians."""
+
+
+class VideoError(RecGSError):
+    """A video clip cannot be read or gives no survey."""
+
+
+class Cancelled(Exception):
+    """The job was asked to stop (SIGTERM / SIGINT); not a fault of the input."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -134,27 +135,36 @@ def read_image(path: str | os.PathLike, downscale: int = 1, size: tuple[int, int
     return np.ascontiguousarray(arr, dtype=np.float32)
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
+def write_image(path: str | os.PathLike, image: np.ndarray, quality: Optional[int] = None) -> None:
     """Write (H, W, C) float image. PNG/JPEG/TIFF get 8-bit values clipped to [0, 1]
-    (16-bit for .tif); EXR keeps float32 (half is not used so values survive exactly).
+    (16-bit for .tif); EXR keeps float32 (half is not used so values survive exactly). A
+    uint8 image is written to PNG/JPEG as it is. ``quality``: JPEG quality 1-100 (None:
+    OpenImageIO's default).
 
     The file is written to a temporary name first and renamed, so a crash never leaves a
     half-written image under the final name.
     """
     oiio = _oiio()
     path = Path(path)
-    image = np.asarray(image, dtype=np.float32)
+    ext = path.suffix.lower()
+    if np.asarray(image).dtype == np.uint8 and ext not in (".exr", ".tif", ".tiff"):
+        image = np.asarray(image)
+    else:
+        image = np.asarray(image, dtype=np.float32)
     if image.ndim == 2:
         image = image[:, :, None]
     h, w, c = image.shape
-    ext = path.suffix.lower()
-    if ext == ".exr":
+    if image.dtype == np.uint8:
+        fmt, data = oiio.UINT8, image
+    elif ext == ".exr":
         fmt, data = oiio.FLOAT, image
     elif ext in (".tif", ".tiff"):
         fmt, data = oiio.UINT16, np.clip(image, 0.0, 1.0)
     else:
         fmt, data = oiio.UINT8, np.clip(image, 0.0, 1.0)
     spec = oiio.ImageSpec(w, h, c, fmt)
+    if quality is not None and ext in (".jpg", ".jpeg"):
+        spec.attribute("Compression", f"jpeg:{int(quality)}")
     with atomic_path(path, "image") as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
