@@ -284,13 +284,31 @@ def cmd_sfm(args) -> int:
         _emit("progress", phase=phase, done=done, total=total, elapsed=round(time.perf_counter() - t0, 2))
         print(f"[{phase}] {done}/{total}", file=sys.stderr, flush=True)
 
+    import signal
+
+    from .core.errors import Cancelled
+
+    stop = {"signal": None}
+
+    def on_signal(signum, _frame):
+        stop["signal"] = signal.Signals(signum).name
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
         result = reconstruct(image_dir, model_dir, scene / "database.db",
-                             SfmOptions(camera_model=args.camera_model, threads=args.threads), on_progress)
+                             SfmOptions(camera_model=args.camera_model, threads=args.threads), on_progress,
+                             resume=True, should_stop=lambda: stop["signal"] is not None)
+    except Cancelled:
+        _emit("done", status="cancelled", reason=f"received {stop['signal']}", scene=str(scene))
+        print(f"stopped by {stop['signal']}; run the same command again to continue", file=sys.stderr)
+        return 0
     except RecGSError as exc:
         _emit("error", message=str(exc))
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
     _emit("done", status="done", scene=str(scene), **result.summary())
     print(f"registered {result.registered}/{result.images} photos, {result.points} points, "
           f"model in {model_dir}", file=sys.stderr)
