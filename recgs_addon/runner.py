@@ -108,9 +108,12 @@ def add_train_arguments(p) -> None:
     g.add_argument("--recurrence-tol", type=float, default=None,
                    help="recgs: stop when the relative change of C falls below this")
     g.add_argument("--estimator", choices=list(ESTIMATORS), default=None,
-                   help="recgs: C from the low-passed residual (the paper), from the multi-view consensus of "
-                        "the photos warped with the model's depth, or a per-view light field (low band + "
-                        "coherent light over a floor; docs/caustics.md)")
+                   help="recgs: auto (default) picks likelihood where the survey sees each seabed point in a "
+                        "median of 8 or more independent passes and lowpass below; lowpass: C from the low-passed "
+                        "residual (the paper); likelihood: fit each point to the light its views most likely "
+                        "saw (the survey's distribution of caustic gains); consensus: the multi-view consensus "
+                        "of the photos warped with the model's depth; lightfield: a per-view light field "
+                        "(low band + coherent light over a floor; docs/caustics.md)")
     g.add_argument("--lf-lambda", type=float, default=None, help="lightfield: TV weight (default 0.05)")
     g.add_argument("--lf-tau", type=float, default=None, help="lightfield: dead band in log light (default 0.02)")
     g.add_argument("--consensus-stat", choices=["mean", "median", "min", "quantile"], default=None,
@@ -278,6 +281,8 @@ def _plan(args, method, trainer):
         raise RecGSError(f"--max-memory must be a number of gigabytes above 0, got {args.max_memory}")
     plan = plan_run(trainer, method.state_bytes(), limit, caustics=method.ccfg.mode in CAUSTIC_MODES)
     lines = plan.lines()
+    if getattr(method, "estimator_why", None):
+        lines.append(f"caustic estimator: {method.ccfg.estimator} ({method.estimator_why})")
     _emit("plan", lines=lines, **plan.summary())
     for line in lines:
         print(line, file=sys.stderr, flush=True)

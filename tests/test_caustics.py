@@ -157,7 +157,7 @@ def rec_cfg(**kw):
     """(trainer settings, caustic settings) of the tests' RecGS runs, with overrides ``kw``."""
     base = dict(iterations=2000, eval_every=50, log_every=50, holdout_every=5, compiled=False, mode="recgs",
                 densify_from=50, densify_every=50, densify_until=400, pyramid=(), warmup=400,
-                recurrence_steps=60, max_recurrences=15, caustic_k=5)
+                recurrence_steps=60, max_recurrences=15, caustic_k=5, estimator="lowpass")
     base.update(kw)
     caustic = {k: base.pop(k) for k in list(base) if k in CausticConfig.__dataclass_fields__}
     return preset("default", **base), CausticConfig(**caustic)
@@ -165,6 +165,23 @@ def rec_cfg(**kw):
 
 def make(scene, gt_images="clean", **kw):
     return make_method(scene, *rec_cfg(**kw), gt_images=gt_images)
+
+
+def test_auto_estimator_follows_the_views_per_point(caustic_scene, monkeypatch):
+    """``auto`` picks the gain likelihood where the survey's median passes over a seabed point
+    reach LIKELIHOOD_PASSES and the low-pass estimate below, and says why in the summary."""
+    from recgs_addon.core.caustics import recgs as rg
+    from recgs_addon.core.train.coverage import sparse_coverage
+
+    views = None
+    for threshold, expected in ((1, "likelihood"), (10 ** 6, "lowpass")):
+        monkeypatch.setattr(rg, "LIKELIHOOD_PASSES", threshold)
+        m = make(caustic_scene, estimator="auto", iterations=1)
+        views = sparse_coverage(m.trainer.data).median_views
+        s = m.summary()
+        assert m.ccfg.estimator == s["estimator"] == expected, s["estimator_why"]
+        assert f"a median of {views:g} training views" in s["estimator_why"]
+    assert CausticConfig().estimator == "auto"
 
 
 def test_recurrence_converges_stops_and_removes_the_caustics(caustic_scene):

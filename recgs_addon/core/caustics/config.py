@@ -15,7 +15,7 @@ MODES = ("3dgs", "oracle", "recgs", "filter2d", "joint")
 #: Modes that train on caustic-free estimates (and write caustic maps).
 CAUSTIC_MODES = ("recgs", "filter2d", "joint")
 #: How RecGS estimates each view's caustics (recgs.py).
-ESTIMATORS = ("lowpass", "consensus", "lightfield", "likelihood")
+ESTIMATORS = ("auto", "lowpass", "consensus", "lightfield", "likelihood")
 
 
 @dataclass
@@ -34,7 +34,8 @@ class CausticConfig:
     max_recurrences: int = 40
     recurrence_tol: float = 0.1          # stop when mean |dC| / mean |C| falls below this
     caustic_floor: float = 0.01          # recgs: C is dropped when mean |C| is below this (1 % of full scale)
-    estimator: str = "lowpass"           # recgs: C = lowpass(I - render) (paper) | consensus: I - multi-view consensus
+    estimator: str = "auto"              # recgs: auto = from the survey's views per point (recgs.choose_estimator)
+                                         # | lowpass: C = lowpass(I - render) (paper) | consensus: I - multi-view consensus
                                          # | lightfield: low band + one-sided coherent light over a floor (lightfield.py)
     lf_lambda: float = 0.05              # lightfield: TV weight (log light per pixel of edge)
     lf_tau: float = 0.02                 # lightfield: dead band (log light) below which light is not taken out

@@ -40,6 +40,7 @@ come from ``TrainData.gt_view`` and are only reported. Settings: ``config.py``.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, Optional
 
 import torch
@@ -59,6 +60,30 @@ from .robust import TrimmedTargets, apply_gain, colour_gain, trim_weights
 FIT_VIEWS = 24
 #: Once C has settled, it is refreshed every this many rounds' steps (a time-limited run trains on)
 REFRESH_EVERY = 5
+
+
+#: auto: the survey's median independent passes over a seabed point (sparse points, before
+#: training; frames under a second apart count once, core/train/coverage.py) from which the
+#: gain likelihood is chosen; below it, the paper's low-pass estimate. A point's most likely
+#: colour beats its median only with enough independent looks at the light (the per-point
+#: bound, benchmarks/pointwise_bound.py: from about 6 on light networks); on dive surveys of 4
+#: passes the low-pass estimate scored higher (benchmarks/RESULTS.md).
+LIKELIHOOD_PASSES = 8
+
+
+def choose_estimator(data) -> tuple[str, str]:
+    """The estimator ``auto`` stands for on this survey, and why: the gain likelihood where
+    each seabed point is seen in enough independent passes to tell its colour from the light
+    moving over it, the low-pass estimate otherwise."""
+    from ..train.coverage import sparse_coverage
+
+    cov = sparse_coverage(data)
+    if not cov.points:
+        return "lowpass", "no sparse points to count views with"
+    views = f"a median of {cov.median_views:g} training views in {cov.median_passes:g} passes a seabed point"
+    if cov.median_passes >= LIKELIHOOD_PASSES:
+        return "likelihood", f"{views}: enough for the gain likelihood (>= {LIKELIHOOD_PASSES} passes)"
+    return "lowpass", f"{views}: the low-pass estimate (the gain likelihood needs >= {LIKELIHOOD_PASSES} passes)"
 
 
 def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
@@ -86,6 +111,11 @@ HARM_DB = 0.3
 
 class RecGS(Method):
     def __init__(self, trainer: Trainer, ccfg: CausticConfig):
+        #: why the estimator is what it is (``auto``: chosen from the survey's views per point)
+        self.estimator_why = "set by the user"
+        if ccfg.estimator == "auto":
+            chosen, self.estimator_why = choose_estimator(trainer.data)
+            ccfg = dataclasses.replace(ccfg, estimator=chosen)
         super().__init__(trainer, ccfg)
         self.k: Optional[int] = ccfg.caustic_k or None
         self.eval_k = ccfg.caustic_k or fft_filter.DEFAULT_K
@@ -513,7 +543,8 @@ class RecGS(Method):
         return (6 + self.targets.bytes_per_pixel()) * self.data.training_pixels()
 
     def summary(self) -> dict:
-        return {**super().summary(), "candidates": self.candidates, "caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,
+        return {**super().summary(), "estimator": self.ccfg.estimator, "estimator_why": self.estimator_why,
+                "candidates": self.candidates, "caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,
                 "psnr_heldout_plain": (self.plain or {}).get("score"), "colour_gain": self.gain,
                 "light_gain": [round(float(x), 4) for x in self.light_gain] if self._lightfield else None}
 

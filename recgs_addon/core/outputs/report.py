@@ -35,8 +35,12 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
             ("held-out SSIM vs ground truth", _f(metrics.get("ssim_test_gt"), 4)),
             ("training images as captured, PSNR vs ground truth (dB)", _f(metrics.get("psnr_captured_gt"))),
             ("caustic-free training images, PSNR vs ground truth (dB)", _f(metrics.get("psnr_decaustic_gt"))),
+            ("caustic estimator", metrics.get("estimator") and
+             f"{metrics['estimator']} ({metrics.get('estimator_why', '')})"),
             ("caustic filter size k", metrics.get("caustic_k")),
             ("caustic estimate dropped", metrics.get("caustics_dropped")),
+            ("model kept at the end", metrics.get("candidates") and
+             f"{metrics['candidates']['kept']} ({metrics['candidates']['why']})"),
             ("model kept from step (best on the held-out photos)", metrics.get("best_step")),
             ("colour gain restored (R, G, B)", metrics.get("colour_gain"))]
     lines += [f"| {k} | {v} |" for k, v in rows if v not in (None, "-")]
