@@ -78,14 +78,14 @@ class RecGSSettings(bpy.types.PropertyGroup):
                                        "0 = chosen from the residual spectrum (default); odd sizes "
                                        "fix it (9 keeps -4..+4 cycles per image, as the paper)")
     # -- advanced ----------------------------------------------------------------------------
-    preset: EnumProperty(name="Preset", default="default",
+    preset: EnumProperty(name="Preset", default="default", description="Training schedule",
                          items=[("default", "Default", "Lean schedule: grows only what the scene needs"),
                                 ("vanilla", "Vanilla", "INRIA's 30k-iteration schedule")])
     iterations: IntProperty(name="Iterations", default=0, min=0,
                             description="Upper bound on optimisation steps (0 = the preset's)")
     sh_degree: IntProperty(name="SH Degree", default=3, min=0, max=3,
                            description="Cap on the spherical-harmonic degree")
-    seed: IntProperty(name="Seed", default=0, min=0)
+    seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the random generators")
     holdout_every: IntProperty(name="Hold Out Every", default=8, min=0,
                                description="Hold out every Nth photo for the quality figure (0 = none)")
     checkpoint_every: FloatProperty(name="Checkpoint Every", default=10.0, min=0.0, soft_max=600.0,
