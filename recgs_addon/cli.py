@@ -37,28 +37,53 @@ import warnings
 from pathlib import Path
 
 
-def _parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
+    """The whole command line: one subparser per command (also read by tools/make_reference.py)."""
     p = argparse.ArgumentParser(prog="python -m recgs_addon", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
-    imp = sub.add_parser("import", help="COLMAP survey -> scene.blend + point_cloud.ply + report")
-    imp.add_argument("scene_dir", type=Path)
-    imp.add_argument("--out", type=Path, required=True, help="output folder")
+    imp = sub.add_parser("import", help="COLMAP survey -> scene.blend + point_cloud.ply + report",
+                         description="Import a COLMAP survey into a new .blend (a camera per photo and the "
+                                     "initial Gaussians) with the add-on's own operators, export the Gaussians "
+                                     "as a 3DGS PLY, and report the time taken and how far the Blender "
+                                     "cameras' projections are from COLMAP's. Needs the bpy module.")
+    imp.add_argument("scene_dir", type=Path, help="survey folder holding images/ and a COLMAP model in sparse/0")
+    imp.add_argument("--out", type=Path, required=True,
+                     help="output folder (scene.blend, point_cloud.ply, report.md, report.json)")
     imp.add_argument("--images", default="images", help="image folder inside the scene (default: images)")
-    imp.add_argument("--sh-degree", type=int, default=0, choices=range(4))
-    info = sub.add_parser("info", help="describe a 3DGS PLY file")
-    info.add_argument("ply", type=Path)
+    imp.add_argument("--sh-degree", type=int, default=0, choices=range(4),
+                     help="spherical-harmonic degree of the initial Gaussians (training raises it where it helps)")
+    info = sub.add_parser("info", help="describe a 3DGS PLY file",
+                          description="Print what a Gaussian PLY holds (count, SH degree, bounds, mean opacity) "
+                                      "as JSON. No Blender needed.")
+    info.add_argument("ply", type=Path, help="a 3DGS PLY (INRIA layout)")
     from .runner import add_render_arguments, add_train_arguments
 
-    add_train_arguments(sub.add_parser("train", help="train Gaussians on a survey (JSON-lines progress)"))
-    add_render_arguments(sub.add_parser("render", help="render a PLY from a survey's cameras"))
-    sfm = sub.add_parser("sfm", help="photos -> COLMAP model with pycolmap (JSON-lines progress)")
+    add_train_arguments(sub.add_parser(
+        "train", help="train Gaussians on a survey (JSON-lines progress)",
+        description="Train 3D Gaussian Splatting on a survey, with or without caustic removal. Progress as JSON "
+                    "lines on stdout and a readable line on stderr; writes checkpoint.pt, point_cloud.ply and "
+                    "metrics.json to OUT. SIGTERM/SIGINT stop it after a checkpoint; --resume continues."))
+    add_render_arguments(sub.add_parser(
+        "render", help="render a PLY from a survey's cameras",
+        description="Render a model from the survey's cameras (a PNG and a float EXR per view, in OUT) and "
+                    "report each view's PSNR against its photo."))
+    sfm = sub.add_parser("sfm", help="photos -> COLMAP model with pycolmap (JSON-lines progress)",
+                         description="Structure from motion with pycolmap: copies (or links) the photos to "
+                                     "OUT/images and writes the COLMAP model to OUT/sparse/0, ready for import "
+                                     "and train. Progress as JSON lines; SIGTERM/SIGINT stop it, and running "
+                                     "it again continues where it stopped.")
     sfm.add_argument("photo_dir", type=Path, help="folder of overlapping photos")
     sfm.add_argument("--out", type=Path, required=True, help="scene folder to write (images/, sparse/0)")
     sfm.add_argument("--link", action="store_true", help="symlink the photos instead of copying them")
     sfm.add_argument("--overwrite", action="store_true", help="replace an existing sparse/0")
     sfm.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model (one camera shared)")
-    sfm.add_argument("--threads", type=int, default=2)
-    add_video_arguments(sub.add_parser("video", help="video clip -> frames + COLMAP model (JSON-lines progress)"))
+    sfm.add_argument("--threads", type=int, default=2, help="CPU threads for SfM (features, matching, mapping)")
+    add_video_arguments(sub.add_parser(
+        "video", help="video clip -> frames + COLMAP model (JSON-lines progress)",
+        description="A video clip into a survey: the sharpest frame of each window of time (near-duplicates and "
+                    "dark frames left out) into OUT/images with their time stamps in OUT/frames.json, then SfM "
+                    "with sequential matching and one shared camera into OUT/sparse/0. Progress as JSON lines; "
+                    "SIGTERM/SIGINT stop it, and running it again continues where it stopped."))
     return p
 
 
@@ -84,7 +109,7 @@ def add_video_arguments(p: argparse.ArgumentParser) -> None:
                         "vocabulary tree file (off by default)")
     p.add_argument("--min-registered", type=float, default=0.5, metavar="SHARE",
                    help="fail unless SfM registers at least this share of the frames (default 0.5)")
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=int, default=2, help="CPU threads for decoding and SfM")
     p.add_argument("--overwrite", action="store_true",
                    help="start again: replace the folder's frames, database and model")
     p.add_argument("--verbose", action="store_true", help="keep COLMAP's own log lines on stderr")
@@ -449,7 +474,7 @@ def cmd_video(args) -> int:
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    args = build_parser().parse_args(argv)
     if args.command == "sfm":
         return cmd_sfm(args)
     if args.command == "video":

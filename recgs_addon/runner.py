@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .core.caustics.config import CAUSTIC_MODES, ESTIMATORS
+from .core.caustics.config import CAUSTIC_MODES, ESTIMATORS, CausticConfig
 from .core.errors import RecGSError
 
 
@@ -60,20 +60,24 @@ def _finite(x):
 
 def add_train_arguments(p) -> None:
     p.add_argument("scene_dir", type=Path, help="folder with images/ and sparse/0")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder (checkpoint.pt, point_cloud.ply, metrics.json, the run's report)")
     p.add_argument("--mode", choices=["3dgs", "recgs", "filter2d", "joint", "oracle"], default="3dgs",
                    help="3dgs: plain Gaussian Splatting; recgs: with caustic removal (RecGS); "
                         "filter2d, joint, oracle: baselines (oracle trains on --gt-images)")
     p.add_argument("--preset", choices=["default", "vanilla"], default="default",
                    help="default: lean schedule; vanilla: INRIA's 30k-iteration schedule")
-    p.add_argument("--max-minutes", type=float, default=None, help="wall-clock limit")
-    p.add_argument("--iterations", type=int, default=None, help="upper bound on steps")
-    p.add_argument("--budget", default="auto", help="maximum Gaussians, or 'auto'")
+    p.add_argument("--max-minutes", type=float, default=None, help="wall-clock limit in minutes (default: none)")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="upper bound on optimisation steps (default: the preset's)")
+    p.add_argument("--budget", default="auto",
+                   help="maximum number of Gaussians, or 'auto': stop adding Gaussians when held-out quality "
+                        "stops improving")
     p.add_argument("--density", choices=["mcmc", "adc"], default=None,
                    help="density control: mcmc (relocate dead Gaussians under a fixed budget, 3DGS-MCMC; "
                         "the default for --mode 3dgs) or adc (INRIA's clone/split by screen gradient; the "
                         "default for the caustic modes)")
-    p.add_argument("--downscale", type=int, default=1, help="train at image size / N")
+    p.add_argument("--downscale", type=int, default=1, help="train at the photo size divided by N")
     p.add_argument("--max-side", type=int, default=None,
                    help="long side of the training images at most this many pixels (default 1600, as the "
                         "reference 3DGS code; 0 = the photos' own size): memory and step time grow with it")
@@ -81,14 +85,18 @@ def add_train_arguments(p) -> None:
                    help="gigabytes the run may use (default: what the machine has free); a run that would need "
                         "more is refused before it starts, and an automatic budget is capped to fit")
     p.add_argument("--sh-degree", type=int, default=3, choices=range(4), help="cap on the SH degree")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the random generators")
     p.add_argument("--device", default="cpu", help="cpu, cuda or mps (where torch has them)")
-    p.add_argument("--images", default=None, help="image folder with the same names (e.g. clean)")
+    p.add_argument("--images", default=None,
+                   help="train on this image folder instead of images/: a name inside the scene (e.g. clean) "
+                        "or a path; the same file names")
     p.add_argument("--holdout-every", type=int, default=8, help="hold out every Nth image; 0 = none")
     p.add_argument("--init-ply", type=Path, default=None, help="start from these Gaussians")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--checkpoint-every", type=float, default=30.0, help="seconds between checkpoints")
-    p.add_argument("--eager", action="store_true", help="do not use torch.compile")
+    p.add_argument("--eager", action="store_true",
+                   help="plain PyTorch rasterizer: neither numba's kernels nor torch.compile (about 2.5x slower "
+                        "steps; the reference the fast paths are tested against)")
     p.add_argument("--compile-first", action="store_true",
                    help="compile before the first step even on a cold cache (default: train eagerly "
                         "while a background process warms the cache, then switch)")
@@ -98,15 +106,20 @@ def add_train_arguments(p) -> None:
     g.add_argument("--caustic-k", type=int, default=None,
                    help="low-pass block size, odd (the paper: 9); 0 = from the residual spectrum (default)")
     g.add_argument("--caustic-model", choices=["additive", "multiplicative"], default=None,
-                   help="additive: fit I - C (paper); multiplicative: fit I / gain")
+                   help="additive: fit I - C (paper); multiplicative: fit I / gain "
+                        f"(default {CausticConfig.caustic_model})")
     g.add_argument("--caustic-dc", choices=["zero", "keep"], default=None,
                    help="recgs: C's mean per view: zero (default; caustics move light, they add none) "
                         "or keep (the paper)")
-    g.add_argument("--warmup", type=int, default=None, help="recgs: most plain steps before the first recurrence")
-    g.add_argument("--recurrence-steps", type=int, default=None, help="recgs: steps per recurrence")
-    g.add_argument("--max-recurrences", type=int, default=None)
+    g.add_argument("--warmup", type=int, default=None,
+                   help=f"recgs: most plain steps before the first recurrence (default {CausticConfig.warmup})")
+    g.add_argument("--recurrence-steps", type=int, default=None,
+                   help=f"recgs: steps per recurrence (default {CausticConfig.recurrence_steps})")
+    g.add_argument("--max-recurrences", type=int, default=None,
+                   help=f"recgs: at most this many recurrences (default {CausticConfig.max_recurrences})")
     g.add_argument("--recurrence-tol", type=float, default=None,
-                   help="recgs: stop when the relative change of C falls below this")
+                   help="recgs: stop when the relative change of C falls below this "
+                        f"(default {CausticConfig.recurrence_tol})")
     g.add_argument("--estimator", choices=list(ESTIMATORS), default=None,
                    help="recgs: auto (default) picks likelihood where the survey sees each seabed point in a "
                         "median of 8 or more independent passes and lowpass below; lowpass: C from the low-passed "
@@ -120,7 +133,7 @@ def add_train_arguments(p) -> None:
                    help="consensus: the per-pixel statistic over the views that see it (default mean)")
     g.add_argument("--fit-loss", choices=["l1", "l2"], default=None,
                    help="recgs: data term of the recurrences: l1 (the paper; fits the views' median) or l2 "
-                        "(their mean; no SSIM term)")
+                        f"(their mean; no SSIM term); default {CausticConfig.fit_loss}")
     g.add_argument("--robust-k", type=float, default=None,
                    help="recgs: leave out of the loss pixels brighter than the render by more than k robust "
                         "sigmas (1.5 in the trials; default 0 = the paper's plain loss, see docs/caustics.md)")
@@ -392,11 +405,12 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
 def add_render_arguments(p) -> None:
     p.add_argument("model", type=Path, help="a 3DGS PLY")
     p.add_argument("scene_dir", type=Path, help="survey whose cameras to render from")
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True, help="output folder (a PNG and a float EXR per view)")
     p.add_argument("--names", default=None, help="comma-separated image names (default: all)")
-    p.add_argument("--downscale", type=int, default=1)
+    p.add_argument("--downscale", type=int, default=1, help="render at the photo size divided by N")
     p.add_argument("--images", default=None, help="compare against this image folder (default images/)")
-    p.add_argument("--eager", action="store_true")
+    p.add_argument("--eager", action="store_true",
+                   help="plain PyTorch rasterizer: neither numba's kernels nor torch.compile (slower)")
 
 
 def run_render(args) -> int:

@@ -482,7 +482,8 @@ def _set_mode(self, value):
 class RecGSPreviewSettings(bpy.types.PropertyGroup):
     """Preview settings of one Gaussian object (stored in its preview modifier)."""
 
-    mode: EnumProperty(name="Mode", items=MODES, get=_get_mode, set=_set_mode)
+    mode: EnumProperty(name="Mode", items=MODES, get=_get_mode, set=_set_mode,
+                       description="How the viewport draws the Gaussians")
     display_ratio: FloatProperty(name="Display Ratio", min=0.0, max=1.0, subtype="FACTOR",
                                  get=_getter("Display Ratio", 1.0), set=_setter("Display Ratio"),
                                  description="Fraction of the Gaussians shown in the viewport "

@@ -78,14 +78,14 @@ class RecGSSettings(bpy.types.PropertyGroup):
                                        "0 = chosen from the residual spectrum (default); odd sizes "
                                        "fix it (9 keeps -4..+4 cycles per image, as the paper)")
     # -- advanced ----------------------------------------------------------------------------
-    preset: EnumProperty(name="Preset", default="default",
+    preset: EnumProperty(name="Preset", default="default", description="Training schedule",
                          items=[("default", "Default", "Lean schedule: grows only what the scene needs"),
                                 ("vanilla", "Vanilla", "INRIA's 30k-iteration schedule")])
     iterations: IntProperty(name="Iterations", default=0, min=0,
                             description="Upper bound on optimisation steps (0 = the preset's)")
     sh_degree: IntProperty(name="SH Degree", default=3, min=0, max=3,
                            description="Cap on the spherical-harmonic degree")
-    seed: IntProperty(name="Seed", default=0, min=0)
+    seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the random generators")
     holdout_every: IntProperty(name="Hold Out Every", default=8, min=0,
                                description="Hold out every Nth photo for the quality figure (0 = none)")
     checkpoint_every: FloatProperty(name="Checkpoint Every", default=10.0, min=0.0, soft_max=600.0,
@@ -98,16 +98,18 @@ class RecGSSettings(bpy.types.PropertyGroup):
                             description="Where the job writes checkpoint, PLY, metrics and images "
                                         "(empty: recgs_out inside the scene folder)")
     # -- job status (written by the timer) ----------------------------------------------------
-    status: EnumProperty(name="Status", items=STATUS_ITEMS, default="IDLE")
-    job_kind: StringProperty(name="Job")
-    phase: StringProperty(name="Phase")
-    iteration: IntProperty(name="Iteration", default=0)
-    gaussians: IntProperty(name="Gaussians", default=0)
-    psnr_test: FloatProperty(name="Held-out PSNR", default=-1.0, description="dB; negative: not measured yet")
-    elapsed: FloatProperty(name="Elapsed", default=0.0, description="seconds")
-    eta: FloatProperty(name="Remaining", default=-1.0, description="seconds; negative: unknown")
-    progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
-    message: StringProperty(name="Message")
+    status: EnumProperty(name="Status", items=STATUS_ITEMS, default="IDLE", description="State of the last job")
+    job_kind: StringProperty(name="Job", description="What the job does: train, sfm or video")
+    phase: StringProperty(name="Phase", description="The step the job is at, as it reports it")
+    iteration: IntProperty(name="Iteration", default=0, description="Optimisation steps done")
+    gaussians: IntProperty(name="Gaussians", default=0, description="Gaussians in the model now")
+    psnr_test: FloatProperty(name="Held-out PSNR", default=-1.0,
+                             description="Quality on the held-out photos in dB; negative: not measured yet")
+    elapsed: FloatProperty(name="Elapsed", default=0.0, description="Seconds since the job started")
+    eta: FloatProperty(name="Remaining", default=-1.0, description="Seconds left, estimated; negative: unknown")
+    progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR",
+                            description="Share of the job done")
+    message: StringProperty(name="Message", description="The job's last message: a result, a note, or why it failed")
     plan: StringProperty(name="Plan", description="What the job said it will need before it started "
                                                   "(resolution, memory, time per 1,000 steps), one line each")
 
