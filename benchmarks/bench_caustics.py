@@ -142,7 +142,7 @@ def main(argv=None) -> int:
     p.add_argument("--surveys", default="networks,ridges,broad,mild,weak,none")
     p.add_argument("--methods", default="3dgs,oracle,recgs,recgs-last,recgs-trim,recgs-consensus")
     p.add_argument("--refinements", default="sample", help="surveys that also run recgs-k9, recgs-mult")
-    p.add_argument("--minutes", type=float, default=5.0, help="wall-clock limit per run (the issue's goals: 5)")
+    p.add_argument("--minutes", type=float, default=5.0, help="wall-clock limit per run (the quality goals are stated for 5)")
     p.add_argument("--large-minutes", type=float, default=5.0, help="wall-clock limit per run on 'large'")
     p.add_argument("--quick", action="store_true", help="downscale 2 and 0.5 min per run (smoke test)")
     p.add_argument("--extra", default="", help="more runner options for every run, space separated")
