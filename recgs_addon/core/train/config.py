@@ -6,7 +6,7 @@ method's own settings live beside it, in core/caustics/config.py); :func:`preset
   once held-out PSNR stops improving (``strategy="adc"``: INRIA's clone/split, one per 8
   pixels; the command line's choice for the caustic modes), SH degree raised only when it
   helps held-out views, stop on a held-out plateau, and end with the model that scored best
-  on the held-out photos (measured in docs/training.md and docs/caustics.md);
+  on the held-out photos (measured in benchmarks/RESULTS.md);
 * ``vanilla``: INRIA's schedule: 30k iterations, densify every 100 from 500 to 15k, opacity
   reset every 3k, SH degree +1 every 1k.
 """
