@@ -11,7 +11,7 @@ Surveys (generated once with tools/make_survey.py into OUT/surveys, reused after
 * ``broad``: 32 views at 320x240, broad low-frequency waves (a 12 m tile, softened), strength 1.0;
 * ``large``: 32 views at 320x240, another seed and the ``waves`` pattern;
 * ``mild``: 32 views at 320x240, light networks (voronoi) at strength 0.35 (photos about 27 dB
-  from ground truth, the regime of the leads' independent surveys);
+  from ground truth, the regime of the field surveys the quality goals were set on);
 * ``weak``: 24 views, strength 0.15; ``none``: 24 views without caustics;
 * ``dense`` (not in the default list): 48 views with 85 % / 80 % overlap, so each point is
   seen by about three times as many photos as in the sample.
@@ -59,7 +59,7 @@ SURVEYS = {
     "weak": ["--views", "24", "--seed", "3", "--caustic-strength", "0.15"],
     "none": ["--views", "24", "--seed", "4", "--caustic-strength", "0"],
     # each seafloor point in ~3x as many photos (the caustics' mean over the photos that see a
-    # point is what no consistency-based method can tell from texture; see docs/caustics.md)
+    # point is what no consistency-based method can tell from texture; see benchmarks/RESULTS.md#caustics-benchmark-four-surveys)
     "dense": ["--views", "48", "--seed", "1", "--overlap", "0.85", "--sidelap", "0.8"],
 }
 # Dive-like surveys: 144 frames along six overlapping rows (85 % forward, 70 % side overlap), each
@@ -142,7 +142,7 @@ def main(argv=None) -> int:
     p.add_argument("--surveys", default="networks,ridges,broad,mild,weak,none")
     p.add_argument("--methods", default="3dgs,oracle,recgs,recgs-last,recgs-trim,recgs-consensus")
     p.add_argument("--refinements", default="sample", help="surveys that also run recgs-k9, recgs-mult")
-    p.add_argument("--minutes", type=float, default=5.0, help="wall-clock limit per run (the issue's goals: 5)")
+    p.add_argument("--minutes", type=float, default=5.0, help="wall-clock limit per run (the quality goals are stated for 5)")
     p.add_argument("--large-minutes", type=float, default=5.0, help="wall-clock limit per run on 'large'")
     p.add_argument("--quick", action="store_true", help="downscale 2 and 0.5 min per run (smoke test)")
     p.add_argument("--extra", default="", help="more runner options for every run, space separated")

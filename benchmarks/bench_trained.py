@@ -8,7 +8,7 @@ Takes ``--count`` Gaussians of the trained model (a fixed random subset), render
 per path (eager, numba, compiled; ``--paths``): forward, forward+backward, and a full
 training step (forward, 0.8 L1 + 0.2 SSIM loss, backward, Adam), median (min) seconds, with
 (pixel, Gaussian) pairs and ns per pair. ``--rounds`` repeats the paths interleaved. OpenSplat's CPU trainer takes about 0.12 s per full step at 320x240 / 50k
-on this machine (issue 3).
+on this machine (the speed goal's yardstick, 2026-11-21).
 """
 from __future__ import annotations
 

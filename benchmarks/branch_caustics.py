@@ -7,7 +7,7 @@ then trains each variant on from that same state to ``--iterations`` and writes 
 the final held-out PSNR / SSIM against ground truth (SURVEY/clean), the step of the kept
 (best) model, the caustic-free training images' PSNR beside the photos', and the held-out
 history after the warm-up. Since the warm-up is shared, differences are the variants' alone
-(docs/caustics.md, "Branching from one warm-up").
+(benchmarks/RESULTS.md#caustics-branching-mild).
 """
 import argparse
 import json

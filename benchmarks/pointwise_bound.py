@@ -15,7 +15,7 @@ error ``rms(est / scale - 1)``: the part of the colour error no per-point method
 ``--noise`` adds log-normal photo noise (std in log units) to every sample.
 
 No rendering, no training: a few seconds. The spatial structure of the light is what a
-per-point estimator cannot use; docs/caustics.md puts these figures beside the trained ones.
+per-point estimator cannot use; benchmarks/RESULTS.md puts these figures beside the trained ones.
 """
 from __future__ import annotations
 

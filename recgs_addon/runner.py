@@ -146,7 +146,7 @@ def add_train_arguments(p) -> None:
 def default_density(mode: str) -> str:
     """``mcmc`` for plain 3DGS; ``adc`` for the caustic methods and their baselines, whose
     caustic-free images need the sharper model: on the sample (4 minutes, recgs) mcmc gave
-    21.88 dB caustic-free images against adc's 23.61 (docs/training.md)."""
+    21.88 dB caustic-free images against adc's 23.61 (benchmarks/RESULTS.md)."""
     return "mcmc" if mode == "3dgs" else "adc"
 
 

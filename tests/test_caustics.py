@@ -287,7 +287,7 @@ def test_config_of_an_older_checkpoint_keeps_the_dc_term():
 def test_resume_in_the_middle_of_a_recurrence_continues_it(caustic_scene):
     kw = dict(iterations=560, warmup=400, recurrence_steps=60, max_recurrences=40, recurrence_tol=0.0)
     a = make(caustic_scene, **kw)
-    # stop 30 steps into the first recurrence, wherever the warm-up ended (growth can end it early)
+    # stop the run 30 steps into the first recurrence, wherever the warm-up ended (growth can end it early)
     mid = lambda: a.recurrence == 1 and a.next_due is not None and a.trainer.step == a.next_due - 30  # noqa: E731
     assert a.run(should_stop=mid) == "stopped"
     assert a.stage == "recurrence" and a.recurrence == 1 and a.trainer.step == a.next_due - 30

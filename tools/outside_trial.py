@@ -1,4 +1,4 @@
-"""The outside trial (issue 19): malformed inputs made from a real export and from a copy of
+"""The outside trial (2026-11-25): malformed inputs made from a real export and from a copy of
 the sample survey, run through the command line as a user would, each outcome tallied.
 
     python tools/outside_trial.py WORKDIR [CASE_PREFIX ...]

@@ -7,7 +7,7 @@ depth agrees within ``depth_tol``). Each pixel then has ``n`` samples of the sam
 point under ``n`` different caustic patterns (its own photo included), and a robust
 statistic of them estimates the surface under the light that is always there:
 
-* ``mean``: what a model fitted to the photos converges to (the bound in docs/caustics.md);
+* ``mean``: what a model fitted to the photos converges to (the bound in benchmarks/RESULTS.md);
 * ``median`` / ``min`` / a ``q``-quantile: a lower envelope. Caustic light is a sparse network
   of bright lines over a base, moving between shots: its lower envelope over a few shots is
   close to the base, and varies far less between points than the mean of a few shots.

@@ -18,7 +18,7 @@ the grey log-ratio ``q = mean_c log((I + e) / (render + e))``. Its estimate is
 Trained against ``(I + e) exp(-L) - e`` in turn with re-estimating ``L`` (the recurrence of
 RecGS), the model settles near the *floor* of the light its views saw at each point: the
 lower envelope, which under sparse bright caustics holds far less of them than the mean does
-(docs/caustics.md measures it). That model is darker than the mean light the ground truth
+(benchmarks/RESULTS.md measures it). That model is darker than the mean light the ground truth
 shows; the photos hold the mean (caustics move light, they add none), so the survey-wide
 ratio of photo to render, in linear light, restores it (:func:`linear_gain`,
 :func:`apply_linear_gain`).

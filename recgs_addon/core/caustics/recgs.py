@@ -1,4 +1,4 @@
-"""The recurrent loop of RecGS (Zhang et al. 2024), with the remedies measured in docs/caustics.md.
+"""The recurrent loop of RecGS (Zhang et al. 2024), with the remedies measured in benchmarks/RESULTS.md.
 
 :class:`RecGS` drives a :class:`~..train.trainer.Trainer` in segments and fills its objective
 with caustic-free targets:
@@ -91,7 +91,7 @@ def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
     ``RecGS._scores``), and why. Where a gain likelihood was fitted, by its data term (the model
     under which the held-out photos, caustics and all, are more likely), with PSNR against the
     captured photos not falling more than :data:`HARM_DB`; otherwise by that PSNR alone.
-    docs/caustics.md measures how often this agrees with ground truth."""
+    benchmarks/bench_caustics.py reports how often this agrees with ground truth."""
     if "psnr_captured" not in recgs or "psnr_captured" not in plain:
         return True, "no held-out views to judge by"
     dp = recgs["psnr_captured"] - plain["psnr_captured"]

@@ -4,7 +4,7 @@ Caustics add light: where a photo is much brighter than the model's render, the 
 more likely a caustic line than surface. One-sided hard trimming drops those pixels from the
 loss: with ``r = target - render`` averaged over the colour channels and the robust scale
 ``s = 1.4826 median |r|`` of the view, a pixel counts (weight 1) where ``r <= k s`` and not
-(weight 0) where it is brighter (docs/caustics.md measures k and the alternatives).
+(weight 0) where it is brighter (benchmarks/RESULTS.md measures k and the alternatives).
 
 Trimming the bright tail fits a model darker than the mean light that the photos hold (and
 that the ground truth shows). ``colour_gain`` measures the survey-wide ratio of photo to

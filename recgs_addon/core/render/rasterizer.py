@@ -46,7 +46,7 @@ ALPHA_MAX = 0.99
 T_MIN = 1e-4
 #: Default near plane (scene units), INRIA.
 DEFAULT_NEAR = 0.2
-#: Default tile size in pixels (fastest measured on the CPU, see docs/rasterizer.md).
+#: Default tile size in pixels (fastest measured on the CPU, benchmarks/RESULTS.md#rasterizer-design-trials).
 DEFAULT_TILE_SIZE = 4
 #: Default number of (pixel, Gaussian) pairs per chunk: bounds the temporaries of a pass to
 #: roughly 60 bytes x this and keeps the working set in cache (2^16..2^20 measured).

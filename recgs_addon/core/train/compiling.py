@@ -261,7 +261,7 @@ class CompileSwitch:
         cache costs ~13 s of one core instead of minutes, and it was the fastest path measured
         (one thread, 320x240: 0.095 s a forward + backward at 50k Gaussians against 0.122 s
         compiled and 0.290 s eager; 1000 training steps on the sample 27.6 s against 54.8 s
-        compiled; docs/rasterizer.md). torch.compile where numba is refused or absent, or its
+        compiled; benchmarks/RESULTS.md). torch.compile where numba is refused or absent, or its
         kernels fail to load, and a C++ compiler is on PATH; else eager torch.
         """
         compiler = find_compiler()

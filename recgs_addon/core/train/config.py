@@ -6,7 +6,7 @@ method's own settings live beside it, in core/caustics/config.py); :func:`preset
   once held-out PSNR stops improving (``strategy="adc"``: INRIA's clone/split, one per 8
   pixels; the command line's choice for the caustic modes), SH degree raised only when it
   helps held-out views, stop on a held-out plateau, and end with the model that scored best
-  on the held-out photos (measured in docs/training.md and docs/caustics.md);
+  on the held-out photos (measured in benchmarks/RESULTS.md);
 * ``vanilla``: INRIA's schedule: 30k iterations, densify every 100 from 500 to 15k, opacity
   reset every 3k, SH degree +1 every 1k.
 """
@@ -103,7 +103,7 @@ class TrainConfig:
 
 
 def preset(name: str, **overrides) -> TrainConfig:
-    """``vanilla``: INRIA's schedule. ``default``: the lean schedule measured in docs/training.md."""
+    """``vanilla``: INRIA's schedule. ``default``: the lean schedule described in docs/training.md."""
     if name == "vanilla":
         cfg = TrainConfig(preset="vanilla", iterations=30_000, sh_policy="schedule",
                           plateau_patience=0, budget=10**9, eval_every=1000)
@@ -118,11 +118,12 @@ def preset(name: str, **overrides) -> TrainConfig:
     return replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
 
 
-#: The default preset's settings that go with each density control (docs/training.md,
-#: "Quality against size"): 3DGS-MCMC's regularisers, relocation below opacity 0.1 (the
-#: paper's 0.005 left the budget on faint Gaussians: +0.27 and +0.51 dB at 59,733 Gaussians
-#: after 3000 steps, two seeds, and 8 % less time a step; nerfstudio culls below 0.1 too) and
-#: one Gaussian per 6x6 block of training pixels, or INRIA's clone/split with one per 8 pixels.
+#: The default preset's settings that go with each density control (benchmarks/RESULTS.md:
+#: training-quality-vs-size, training-relocation-five-minutes): 3DGS-MCMC's regularisers,
+#: relocation below opacity 0.1 (the paper's 0.005 left the budget on faint Gaussians: +0.27
+#: and +0.51 dB at 59,733 Gaussians after 3000 steps, two seeds, and 8 % less time a step;
+#: nerfstudio culls below 0.1 too) and one Gaussian per 6x6 block of training pixels, or
+#: INRIA's clone/split with one per 8 pixels.
 DENSITY_DEFAULTS = {
     "mcmc": dict(strategy="mcmc", opacity_reg=0.01, scale_reg=0.01, pixels_per_gaussian=36.0, relocate_opacity=0.1),
     "adc": dict(strategy="adc", opacity_reg=0.0, scale_reg=0.0, pixels_per_gaussian=8.0),

@@ -6,7 +6,7 @@ path that goes with the rasterizer's numba path (no C++ compiler needed).
 only. The eager definition is the oracle: the two agree to float32 rounding, values and
 gradients (tests/test_losses.py). A training step on a 320x240 view, one thread
 (benchmarks/bench_train_step.py): 0.047 s with these kernels against 0.058 s with the eager
-term at 7,000 Gaussians, 0.108 against 0.114 s at 59,733 (docs/training.md).
+term at 7,000 Gaussians, 0.108 against 0.114 s at 59,733 (benchmarks/RESULTS.md#training-numba-ssim).
 
 :func:`load` imports and compiles (or loads from numba's cache) the kernels; the trainer asks
 for this path only once its :class:`.compiling.CompileSwitch` is on numba's, whose background

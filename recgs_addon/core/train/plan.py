@@ -241,8 +241,8 @@ def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, 
 
 
 #: Independent views of a seabed point below which caustic removal cannot tell the light from
-#: the seabed well (docs/caustics.md: with 3 views the best per-point estimate keeps half of
-#: one photo's light error, with 8 a seventh).
+#: the seabed well (benchmarks/RESULTS.md#caustics-pointwise-bound: with 3 views the best
+#: per-point estimate keeps half of one photo's light error, with 8 a seventh).
 MIN_PASSES = 6
 
 
