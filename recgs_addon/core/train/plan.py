@@ -10,8 +10,10 @@ The estimate (bytes)::
            + GAUSSIAN_BYTES_PER_FLOAT * floats per Gaussian * (budget - Gaussians now)
 
 ``now`` is the process's resident memory once every image is decoded (the photos kept
-compact, the model at its start); the constants were measured on the numba path (CPU,
-``benchmarks/bench_survey_size.py --calibrate``; docs/training.md has the table).
+compact, the model at its start); the constants were measured on the numba path (CPU, resident
+memory around training steps at 1280x960 and 1600x1200, 20k to 600k Gaussians; each constant
+says what it came to), and benchmarks/bench_survey_size.py prints the plan's estimate beside
+the measured peak of whole runs.
 """
 from __future__ import annotations
 
