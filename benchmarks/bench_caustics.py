@@ -18,7 +18,8 @@ Surveys (generated once with tools/make_survey.py into OUT/surveys, reused after
 
 The ``dive-*`` kinds are video-like: 144 frames in six overlapping rows (``dive-wander`` along a
 wandering track), a median of about ten training views a point, caustics drifting smoothly with
-time (``networks``, ``mild``, ``broad``, ``none`` as above).
+time (``networks``, ``mild``, ``broad`` as above); ``dive-none`` is ``dive-networks``'s frames
+without caustics (its ground truth as the photos), ``sample-none`` the same of ``sample``.
 
 Every survey but the sample has a seed of its own. Methods: ``3dgs``, ``filter2d``, ``joint``,
 ``oracle`` (plain 3DGS on the clean images), ``recgs`` (the defaults: k from the residual
@@ -72,7 +73,6 @@ SURVEYS.update({
     "dive-mild": DIVE + ["--seed", "31", "--caustic-pattern", "voronoi", "--caustic-strength", "0.35"],
     "dive-broad": DIVE + ["--seed", "33", "--caustic-pattern", "waves", "--caustic-scale", "12",
                           "--caustic-blur", "0.3", "--caustic-strength", "1.0"],
-    "dive-none": DIVE + ["--seed", "34", "--caustic-strength", "0"],
     "dive-wander": DIVE + ["--seed", "35", "--path", "wander", "--caustic-pattern", "voronoi",
                            "--caustic-strength", "0.6"],
 })
@@ -97,7 +97,23 @@ METHODS = {
 }
 
 
+# Surveys without caustics made from another survey's ground truth: the same frames and cameras
+# with the clean images as the photos (no rendering needed; "no harm" is measured on the very
+# seabed the caustic runs see).
+CLEAN_OF = {"dive-none": "dive-networks", "sample-none": "sample"}
+
+
 def survey_dir(out: Path, name: str) -> Path:
+    if name in CLEAN_OF:
+        src = survey_dir(out, CLEAN_OF[name]).resolve()
+        d = out / "surveys" / name
+        if not (d / "sparse").exists():
+            d.mkdir(parents=True, exist_ok=True)
+            for link, target in (("images", "clean"), ("clean", "clean"), ("sparse", "sparse"),
+                                 ("frames.json", "frames.json")):
+                if (src / target).exists() and not (d / link).exists():
+                    (d / link).symlink_to(src / target)
+        return d
     if SURVEYS[name] is None:
         return ROOT / "data" / name
     d = out / "surveys" / name
@@ -133,13 +149,13 @@ def run_method(scene: Path, out: Path, method: str, minutes: float, extra: list[
 
 def _clean(survey: str) -> bool:
     """A survey without caustics (its photos are the ground truth)."""
-    return survey == "none" or survey.endswith("-none")
+    return survey == "none" or survey in CLEAN_OF
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench")
-    p.add_argument("--surveys", default="networks,ridges,broad,mild,weak,none")
+    p.add_argument("--surveys", default="networks,ridges,broad,mild,weak,none")  # any of SURVEYS, CLEAN_OF
     p.add_argument("--methods", default="3dgs,oracle,recgs,recgs-last,recgs-trim,recgs-consensus")
     p.add_argument("--refinements", default="sample", help="surveys that also run recgs-k9, recgs-mult")
     p.add_argument("--minutes", type=float, default=5.0, help="wall-clock limit per run (the quality goals are stated for 5)")
