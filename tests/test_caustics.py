@@ -678,3 +678,20 @@ def test_lightfield_estimator_takes_out_bright_lines_and_keeps_the_mean_light(tm
     plain = make(root, mode="3dgs", **kw)
     plain.run()
     assert lf.trainer.evaluate()["psnr_gt"] > plain.trainer.evaluate()["psnr_gt"]
+
+
+def test_end_of_run_choice_between_the_caustic_free_and_the_plain_model():
+    """A tie on the held-out photos as captured (within TIE_DB) goes to the caustic-free model,
+    a larger loss to the plain one; with a fitted likelihood, its data term decides within
+    HARM_DB of PSNR; no held-out views keep the caustic-free model."""
+    from recgs_addon.core.caustics.recgs import HARM_DB, TIE_DB, prefers_recgs
+
+    plain = {"psnr_captured": 20.0}
+    assert prefers_recgs({"psnr_captured": 20.0 - TIE_DB / 2}, plain)[0]
+    assert not prefers_recgs({"psnr_captured": 20.0 - 2 * TIE_DB}, plain)[0]
+    assert prefers_recgs({"psnr_captured": 20.5}, plain)[0]
+    lik = {"psnr_captured": 20.0, "nll": 0.8}
+    assert prefers_recgs({"psnr_captured": 20.0 - HARM_DB / 2, "nll": 0.7}, lik)[0]
+    assert not prefers_recgs({"psnr_captured": 20.0 - 2 * HARM_DB, "nll": 0.7}, lik)[0]
+    assert not prefers_recgs({"psnr_captured": 20.5, "nll": 0.9}, lik)[0]
+    assert prefers_recgs({}, {})[0]

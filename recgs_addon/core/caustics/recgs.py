@@ -90,7 +90,8 @@ def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
     """Whether the RecGS model beats the plain one on the held-out photos as captured (scores of
     ``RecGS._scores``), and why. Where a gain likelihood was fitted, by its data term (the model
     under which the held-out photos, caustics and all, are more likely), with PSNR against the
-    captured photos not falling more than :data:`HARM_DB`; otherwise by that PSNR alone.
+    captured photos not falling more than :data:`HARM_DB`; otherwise by that PSNR, where a
+    difference within :data:`TIE_DB` is a tie that goes to the caustic-free model.
     benchmarks/bench_caustics.py reports how often this agrees with ground truth."""
     if "psnr_captured" not in recgs or "psnr_captured" not in plain:
         return True, "no held-out views to judge by"
@@ -99,7 +100,7 @@ def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
         dn = recgs["nll"] - plain["nll"]
         ok = dn < 0 and dp > -HARM_DB
         return ok, f"likelihood {recgs['nll']:.4f} against {plain['nll']:.4f}, PSNR {dp:+.2f} dB"
-    return dp > 0, f"PSNR against the held-out photos {dp:+.2f} dB"
+    return dp > -TIE_DB, f"PSNR against the held-out photos {dp:+.2f} dB"
 
 
 #: How far the caustic-free model may fall below the plain one in PSNR against the held-out
@@ -107,6 +108,12 @@ def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
 #: caustics are no model's, and a model of the mean light meets them differently than one of
 #: their median.
 HARM_DB = 0.3
+#: A difference of PSNR against the held-out photos as captured within this is a tie, kept by
+#: the caustic-free model: those photos carry their own caustics, which the plain model shows
+#: in part (it took in the light its views agreed on) and the caustic-free model does not, so a
+#: tie there is a lead against the seabed itself. Decisions measured against ground truth:
+#: benchmarks/RESULTS.md#caustics-dive-surveys.
+TIE_DB = 0.1
 
 
 class RecGS(Method):
