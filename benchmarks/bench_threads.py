@@ -1,0 +1,155 @@
+"""How a training step scales with cores, part by part.
+
+    .venv/bin/python benchmarks/bench_threads.py SCENE_DIR [--gaussians 50000,500000]
+        [--threads 1,2,4,8,16] [--steps 6] [--max-side 1280]
+
+Builds models of each size from the survey's sparse points (jittered copies, SH degree 3), and
+times full training steps on numba's path (the default on the CPU) at each thread count
+(counts above the machine's cores are skipped), at the survey's training size (its photos
+capped at ``--max-side``; 1280x960 for a 4:3 survey scaled with benchmarks/scale_survey.py).
+Each part of the step is timed on its own: numba's cull, tile binning, projection forward and
+backward, compositing forward and backward, the loss's SSIM term, Adam, and the rest (torch's
+glue: gathers, the loss, gradient writes). It prints seconds per step and per part, the speed-
+up over one thread, and the part whose share grows most with threads: what stops scaling.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from recgs_addon.core.io.colmap import load_scene  # noqa: E402
+from recgs_addon.core.model.gaussians import init_from_points  # noqa: E402
+from recgs_addon.core.render import numba_kernels  # noqa: E402
+from recgs_addon.core.render.rasterizer import ALPHA_MAX, ALPHA_MIN, T_MIN  # noqa: E402
+from recgs_addon.core.train import numba_ssim  # noqa: E402
+from recgs_addon.core.train.config import preset  # noqa: E402
+from recgs_addon.core.train.trainer import make_trainer  # noqa: E402
+
+PARTS = ("cull", "bin", "project_forward", "project_backward", "forward", "backward")
+
+
+def model(scene_dir: Path, n: int, seed: int = 0):
+    sc = load_scene(scene_dir)
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(sc.points), n)
+    pts = sc.points[idx] + rng.normal(0, 0.01 * sc.extent(), (n, 3)).astype(np.float32)
+    g = init_from_points(pts, sc.colors[idx], sh_degree=3)
+    g.sh[:, 1:] = rng.normal(0, 0.05, g.sh[:, 1:].shape).astype(np.float32)
+    return g
+
+
+def timed_steps(tr, steps: int) -> tuple[float, dict]:
+    """Median seconds per step and median seconds per part over ``steps`` steps (after one)."""
+    nk = numba_kernels.load(ALPHA_MIN, ALPHA_MAX, T_MIN)
+    spent: dict = defaultdict(float)
+    originals = {}
+    for name in PARTS:
+        fn = getattr(nk, name)
+        originals[name] = fn
+
+        def wrap(*a, _fn=fn, _name=name, **k):
+            t = time.perf_counter()
+            try:
+                return _fn(*a, **k)
+            finally:
+                spent[_name] += time.perf_counter() - t
+        setattr(nk, name, wrap)
+    real_ssim = numba_ssim.ssim_term
+
+    def ssim_wrap(*a, **k):
+        t = time.perf_counter()
+        out = real_ssim(*a, **k)
+        spent["ssim forward"] += time.perf_counter() - t
+        return out
+    numba_ssim.ssim_term = ssim_wrap
+    real_step = tr.optimizer.step
+
+    def adam(*a, **k):
+        t = time.perf_counter()
+        try:
+            return real_step(*a, **k)
+        finally:
+            spent["adam"] += time.perf_counter() - t
+    tr.optimizer.step = adam
+    totals, parts = [], defaultdict(list)
+    try:
+        for k in range(steps + 1):
+            spent.clear()
+            t0 = time.perf_counter()
+            tr.train_step()
+            total = time.perf_counter() - t0
+            if k:
+                totals.append(total)
+                for name, v in spent.items():
+                    parts[name].append(v)
+                parts["rest"].append(total - sum(spent.values()))
+    finally:
+        for name, fn in originals.items():
+            setattr(nk, name, fn)
+        numba_ssim.ssim_term = real_ssim
+    return statistics.median(totals), {k: statistics.median(v) for k, v in parts.items()}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("--gaussians", default="50000,500000")
+    ap.add_argument("--threads", default="1,2,4,8,16")
+    ap.add_argument("--steps", type=int, default=6)
+    ap.add_argument("--max-side", type=int, default=1280)
+    args = ap.parse_args(argv)
+    cores = os.cpu_count() or 1
+    counts = [t for t in (int(x) for x in args.threads.split(",")) if t <= cores]
+    print(f"torch {torch.__version__}, {cores} cores; thread counts {counts}; numba path")
+    from recgs_addon.core.train import compiling
+    if not compiling.numba_is_warm():
+        print("warming numba's cache (once)", flush=True)
+        compiling.warm_up_numba()
+    for n in (int(x) for x in args.gaussians.split(",")):
+        g = model(args.scene, n)
+        base = None
+        rows = []
+        for threads in counts:
+            torch.set_num_threads(threads)
+            cfg = preset("default", sh_degree=3, max_side=args.max_side, pyramid=(), budget=n,
+                         densify_until=0)
+            tr = make_trainer(args.scene, cfg, gaussians=g)
+            tr.sh_degree = 3
+            tr.data.load_all()
+            waited = time.perf_counter()
+            while tr.compiler.compiled() != "numba" and time.perf_counter() - waited < 120:
+                time.sleep(0.5)   # the switch loads the warm kernels in the background
+            if tr.compiler.compiled() != "numba":
+                raise SystemExit("numba's path is not available here (install numba, warm its cache)")
+            total, parts = timed_steps(tr, args.steps)
+            tr.compiler.close()
+            base = base or (total, parts)
+            rows.append((threads, total, parts))
+            w, h = tr.data.sizes[tr.data.train_ids[0]]
+        print(f"\n{n:,} Gaussians at {w}x{h}: seconds per step (speed-up over {counts[0]} thread)")
+        names = [k for k in base[1] if k != "rest"] + ["rest"]
+        print(f"{'threads':>8} {'step':>14} " + " ".join(f"{k:>16}" for k in names))
+        for threads, total, parts in rows:
+            cells = " ".join(f"{parts.get(k, 0):8.3f} ({base[1].get(k, 0) / max(parts.get(k, 1e-9), 1e-9):4.1f}x)"
+                             for k in names)
+            print(f"{threads:>8} {total:7.3f} ({base[0] / total:4.1f}x) {cells}")
+        if len(rows) > 1:
+            last = rows[-1]
+            grow = max(names, key=lambda k: last[2].get(k, 0) / last[1] - base[1].get(k, 0) / base[0])
+            print(f"stops scaling first: {grow} ({100 * base[1].get(grow, 0) / base[0]:.0f} % of the step at "
+                  f"{counts[0]} thread, {100 * last[2].get(grow, 0) / last[1]:.0f} % at {last[0]})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
