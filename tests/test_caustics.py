@@ -335,7 +335,7 @@ def test_recgs_job_writes_caustic_outputs_and_report(caustic_scene, tmp_path):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "recgs_addon", "train", str(caustic_scene), "--out", str(out), "--mode", "recgs",
            "--iterations", "260", "--warmup", "150", "--recurrence-steps", "50", "--caustic-k", "5",
-           "--holdout-every", "5", "--eager", "--downscale", "1"]
+           "--holdout-every", "5", "--eager", "--downscale", "1", "--estimator", "lowpass"]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     events = [json.loads(line) for line in proc.stdout.splitlines()]

@@ -24,7 +24,8 @@ def device_scene(tmp_path_factory):
 
 @pytest.mark.parametrize("mode,strategy,estimator", [
     ("3dgs", "mcmc", "lowpass"), ("3dgs", "adc", "lowpass"), ("recgs", "adc", "lowpass"),
-    ("recgs", "adc", "lightfield"), ("recgs", "adc", "consensus"), ("joint", "adc", "lowpass"),
+    ("recgs", "adc", "lightfield"), ("recgs", "adc", "consensus"), ("recgs", "adc", "likelihood"),
+    ("joint", "adc", "lowpass"),
     ("filter2d", "adc", "lowpass"),
 ])
 def test_eager_training_makes_no_tensor_off_the_models_device(device_scene, tmp_path, mode, strategy, estimator):

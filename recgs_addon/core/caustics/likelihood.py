@@ -93,10 +93,10 @@ class GainLikelihood:
         r = r - shift
         dr = 2 * r_max / (bins - 1)
         idx = ((r + r_max) / dr).round().clamp(0, bins - 1).long()
-        hist = torch.zeros(bins, dtype=torch.float64).index_add_(0, idx, w)
+        hist = torch.zeros(bins, dtype=torch.float64, device="cpu").index_add_(0, idx, w)   # the fit runs on the CPU
         if smooth_bins > 0:
             half = int(math.ceil(4 * smooth_bins))
-            x = torch.arange(-half, half + 1, dtype=torch.float64)
+            x = torch.arange(-half, half + 1, dtype=torch.float64, device="cpu")
             kern = torch.exp(-0.5 * (x / smooth_bins) ** 2)
             hist = torch.nn.functional.conv1d(hist.view(1, 1, -1), (kern / kern.sum()).view(1, 1, -1),
                                               padding=half).view(-1)
@@ -115,7 +115,7 @@ class GainLikelihood:
         slope_lo = min(-MIN_TAIL_SLOPE, float(rho[lo] - rho[mode]) / (min(lo - mode, -1) * dr))
         slope_hi = max(MIN_TAIL_SLOPE, float(rho[hi] - rho[mode]) / (max(hi - mode, 1) * dr))
         # beyond the populated range the table continues with the tail slopes
-        i = torch.arange(bins, dtype=torch.float64)
+        i = torch.arange(bins, dtype=torch.float64, device="cpu")
         rho = torch.where(i < lo, rho[lo] + slope_lo * (i - lo) * dr, rho)
         rho = torch.where(i > hi, rho[hi] + slope_hi * (i - hi) * dr, rho)
         return cls(-r_max, dr, rho.float(), slope_lo, slope_hi, shift)
