@@ -3,9 +3,12 @@
 :class:`RecGS` drives a :class:`~..train.trainer.Trainer` in segments and fills its objective
 with caustic-free targets:
 
-* Warm-up: plain 3DGS on the captured images I, until density control has stopped growing
-  the model, held-out PSNR plateaus, ``ccfg.warmup`` steps, or ``ccfg.warmup_share`` of the
-  time limit, whichever comes first.
+* Warm-up: plain 3DGS on the captured images I for ``ccfg.warmup`` steps or
+  ``ccfg.warmup_share`` of the time limit, whichever comes first; without a time limit also
+  until density control has stopped growing the model or held-out PSNR plateaus. With a time
+  limit the plain model gets its whole share: it is what the recurrences' C is measured
+  against (an immature model's own error reads as caustics) and what the end-of-run choice
+  compares with.
 * Recurrences: render every training view and estimate each view's caustics ``C``: by default
   the low-pass of the residual ``R = I - render`` (``fft_filter.py``, ``estimate.py``; less
   its mean per view and channel unless ``ccfg.caustic_dc``: caustics move light without adding
@@ -320,6 +323,8 @@ class RecGS(Method):
         """Work is due before the next step: the warm-up is over, or a recurrence is due."""
         c, tr = self.ccfg, self.trainer
         if self.stage == "warmup":
+            if self._time_limited():   # the plain model the recurrences start from uses its share
+                return tr.step >= c.warmup or self._warmup_time_up()
             return tr.step >= c.warmup or self._warmup_time_up() or self._growth_over()
         return self.stage == "recurrence" and self.next_due is not None and tr.step >= self.next_due
 
