@@ -275,6 +275,7 @@ def make_clip(work: Path, keys: Path) -> tuple[Path, dict]:
 # -- measuring ----------------------------------------------------------------------------------------
 
 def umeyama(src: np.ndarray, dst: np.ndarray):
+    """Similarity (scale, R, t) minimising |scale R src + t - dst|^2 over (N, 3) point pairs."""
     mu_s, mu_d = src.mean(0), dst.mean(0)
     xs, xd = src - mu_s, dst - mu_d
     U, S, Vt = np.linalg.svd(xd.T @ xs / len(src))

@@ -23,6 +23,7 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from recgs_addon.core.errors import Cancelled, VideoError  # noqa: E402
 from recgs_addon.core.io import frame_choice as fc  # noqa: E402
+from benchmarks.bench_video import umeyama  # noqa: E402
 
 SAMPLE = ROOT / "data" / "sample"
 FPS = 12
@@ -92,19 +93,6 @@ def run_video(clip_path, out, *extra, timeout=300):
                        cwd=ROOT, capture_output=True, text=True, timeout=timeout)
     events = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
     return r, events
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray):
-    """Similarity (scale, R, t) minimising |scale R src + t - dst|^2 over (N, 3) point pairs."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(xd.T @ xs / len(src))
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1
-    R = U @ D @ Vt
-    scale = np.trace(np.diag(S) @ D) / (xs ** 2).sum(1).mean()
-    return scale, R, mu_d - scale * R @ mu_s
 
 
 def camera_errors(model_dir, truth_of_name):
