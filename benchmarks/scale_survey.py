@@ -25,6 +25,7 @@ def scale_survey(src: Path, dst: Path, width: int, quality: int = 92, folders=("
     import pycolmap
 
     from recgs_addon.core.io.colmap import find_model_dir
+    from recgs_addon.core.io.frames import read_frame_times, write_frame_times
 
     rec = pycolmap.Reconstruction(str(find_model_dir(src)))
     (dst / "sparse" / "0").mkdir(parents=True, exist_ok=True)
@@ -53,6 +54,9 @@ def scale_survey(src: Path, dst: Path, width: int, quality: int = 92, folders=("
             big.specmod().attribute("Compression", f"jpeg:{quality}")
             if not big.write(str(dst / folder / new)):
                 raise SystemExit(f"{dst / folder / new}: {big.geterror()}")
+    times = read_frame_times(src)
+    if times is not None:   # a video survey's frame times, under the new names
+        write_frame_times(dst, {names[n]: t for n, t in times.items() if n in names}, source=str(src))
     size = sum(p.stat().st_size for p in (dst / "images").iterdir())
     return {"images": len(names), "width": width, "seconds": round(time.perf_counter() - t, 1),
             "megabytes": round(size / 2 ** 20, 1)}
