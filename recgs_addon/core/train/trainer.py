@@ -173,20 +173,11 @@ class Trainer:
     def _full_res_from(self) -> int:
         return max([int(until) for until, _ in self.cfg.pyramid], default=0)
 
-    def schedule_fraction(self) -> float:
-        """How far the run is through what it was given (0..1): its steps of the iteration
-        limit or, with a time limit, its schedule time of that limit, whichever is further. The
-        position learning rate decays over it, so a 5-minute run ends with the fine steps a
-        30,000-step run ends with."""
-        c = self.cfg
-        t = self.step / max(1, c.iterations)
-        if c.max_minutes:
-            t = max(t, self.schedule_elapsed() / (60.0 * c.max_minutes))
-        return min(1.0, t)
-
     def _means_lr(self) -> float:
+        """INRIA's log-linear decay over the iteration limit. Not over a time limit: decayed
+        over 5 minutes, it left short runs 1.5 dB below (benchmarks/RESULTS.md#training-lr-time)."""
         c = self.cfg
-        t = self.schedule_fraction()
+        t = min(1.0, self.step / max(1, c.iterations))
         return math.exp((1 - t) * math.log(c.lr_means) + t * math.log(c.lr_means_final)) * self.extent
 
     def _next_view(self) -> int:
