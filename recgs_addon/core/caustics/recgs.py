@@ -253,10 +253,11 @@ class RecGS(Method):
                 new = self._likelihood_maps(ids, renders)
             else:
                 new = {i: self._estimate(self.data.view(i, 1)[1], renders[i], self.k) for i in ids}
-        old = [self.maps[i].float() if i in self.maps else torch.zeros_like(new[i]) for i in ids]
-        change = fft_filter.caustic_change([new[i] for i in ids], old)
         if self._likelihood:   # the light maps follow the model's texture too; the gains' distribution settles
             change = self.gain_model.distance(previous_gain) if previous_gain is not None else 1.0
+        else:
+            old = [self.maps[i].float() if i in self.maps else torch.zeros_like(new[i]) for i in ids]
+            change = fft_filter.caustic_change([new[i] for i in ids], old)
         self._set_maps(new)
         self.recurrence += 1
         photos = {i: self.data.view(i, 1)[1] for i in ids}
