@@ -126,7 +126,7 @@ def add_train_arguments(p) -> None:
                         "residual (the paper); likelihood: fit each point to the light its views most likely "
                         "saw (the survey's distribution of caustic gains); consensus: the multi-view consensus "
                         "of the photos warped with the model's depth; lightfield: a per-view light field "
-                        "(low band + coherent light over a floor; docs/caustics.md)")
+                        "(low band + coherent light over a floor; docs/dev/caustics.md)")
     g.add_argument("--lf-lambda", type=float, default=None, help="lightfield: TV weight (default 0.05)")
     g.add_argument("--lf-tau", type=float, default=None, help="lightfield: dead band in log light (default 0.02)")
     g.add_argument("--consensus-stat", choices=["mean", "median", "min", "quantile"], default=None,
@@ -136,7 +136,7 @@ def add_train_arguments(p) -> None:
                         f"(their mean; no SSIM term); default {CausticConfig.fit_loss}")
     g.add_argument("--robust-k", type=float, default=None,
                    help="recgs: leave out of the loss pixels brighter than the render by more than k robust "
-                        "sigmas (1.5 in the trials; default 0 = the paper's plain loss, see docs/caustics.md)")
+                        "sigmas (an experiment: 0, the default, is the paper's plain loss; docs/dev/caustics.md)")
     g.add_argument("--gain-restore", choices=["on", "off"], default=None,
                    help="recgs with trimming: rescale the colours to the photos' mean light at the end (default on)")
     p.add_argument("--keep-last", action="store_true",

@@ -413,7 +413,7 @@ def test_eevee_render_matches_core_renderer(tmp_path, session, method, samples):
     assert eevee.shape == core.shape
     r = float(np.corrcoef(eevee.ravel(), core.ravel())[0, 1])
     print(f"EEVEE preview ({method}, {samples} samples) vs core renderer: Pearson r = {r:.4f}")
-    if os.environ.get("RECGS_DOC_IMAGES") and method == "BLENDED":  # refresh the images shown in docs/preview.md
+    if os.environ.get("RECGS_DOC_IMAGES") and method == "BLENDED":  # refresh the images shown in benchmarks/RESULTS.md#preview-agreement
         write_image(ROOT / "docs/images/preview_eevee.png", eevee)
         write_image(ROOT / "docs/images/preview_core.png", core)
     assert core.max() > 0.5 and eevee.max() > 0.5  # the Gaussians are in view

@@ -191,7 +191,7 @@ def cli_reference() -> str:
               textwrap.indent(textwrap.dedent(batch.__doc__.split("\n\n")[1]).strip("\n"), "    "), ""]
     same = train is not None and [invocation(a) for a in options(bp)] == [invocation(a) for a in options(train)]
     if same:
-        lines += ["It takes the same arguments as [`train`](#train); see [batch.md](batch.md).", ""]
+        lines += ["It takes the same arguments as [`train`](#train); see [the user guide](user_guide.md#without-the-user-interface).", ""]
     else:
         lines += command_section("batch.py", bp, "", level="####")[2:]
     return "\n".join(lines)

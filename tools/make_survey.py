@@ -1370,7 +1370,7 @@ def main(argv=None) -> int:
         import OpenImageIO  # noqa: F401
     except ImportError as exc:
         sys.exit(f"make_survey: {exc}. Install pycolmap and OpenImageIO into this Python "
-                 "(see docs/import_export.md).")
+                 "(see docs/dev/import_export.md).")
     out = args.out.resolve()
     bpy = _bpy()
     bpy.ops.wm.read_factory_settings(use_empty=True)

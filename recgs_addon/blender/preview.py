@@ -52,7 +52,7 @@ VERSION = 1
 #: Degree-0 SH constant (core.model.gaussians.SH_C0), written into the nodes.
 SH_C0 = 0.28209479177387814
 #: Default half-size of the instanced ellipsoid in standard deviations. The Gaussian is cut at
-#: exp(-2.5^2 / 2) = 4.4 % of its peak. Measured against the trainer's render (docs/preview.md):
+#: exp(-2.5^2 / 2) = 4.4 % of its peak. Measured against the trainer's render (docs/dev/preview.md):
 #: correlation 0.979 / 0.978 / 0.974 / 0.971 for 2 / 2.5 / 3 / 4 (blended); smaller is faster (less
 #: overdraw), but at 2 the 13.5 % step at the rim shows on large opaque Gaussians.
 DEFAULT_EXTENT = 2.5

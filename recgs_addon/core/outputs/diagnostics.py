@@ -6,7 +6,7 @@ with respect to the Gaussian's DC colour coefficient, which is ``SH_C0 * sum alp
 channel (colour = 0.5 + SH is linear in it, clamped only where it would go negative). A
 Gaussian "carries" a view where that weight is at least ``min_weight`` pixels. A Gaussian
 carried by few views has its colour fitted to the light of those few photos: with moving
-caustics, to their caustics (docs/caustics.md).
+caustics, to their caustics (docs/method.md).
 """
 from __future__ import annotations
 

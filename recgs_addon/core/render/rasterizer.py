@@ -1,6 +1,6 @@
 """Differentiable Gaussian rasterizer for the CPU, in pure torch (INRIA 3DGS maths).
 
-Entry point: :func:`render`. Design and measured speed: ``docs/rasterizer.md``.
+Entry point: :func:`render`. Design and measured speed: ``docs/dev/rasterizer.md``.
 
 Pipeline
 --------

@@ -103,7 +103,7 @@ class TrainConfig:
 
 
 def preset(name: str, **overrides) -> TrainConfig:
-    """``vanilla``: INRIA's schedule. ``default``: the lean schedule described in docs/training.md."""
+    """``vanilla``: INRIA's schedule. ``default``: the lean schedule described in docs/dev/training.md."""
     if name == "vanilla":
         cfg = TrainConfig(preset="vanilla", iterations=30_000, sh_policy="schedule",
                           plateau_patience=0, budget=10**9, eval_every=1000)

@@ -1,7 +1,7 @@
 """How many training views see each point of the seabed: what caustic removal has to work with.
 
 A seabed point seen by ``n`` photos offers ``n`` samples of the light that moved over it; how
-well any method can tell its colour from the caustics grows with ``n`` (docs/caustics.md).
+well any method can tell its colour from the caustics grows with ``n`` (docs/method.md).
 Frames of a video taken a fraction of a second apart saw nearly the same light, so they do not
 count as independent samples: of the frames that see a point, one counts for every
 :data:`PASS_SECONDS` of the clip (times from the survey's ``frames.json``, core/io/frames.py).
