@@ -749,9 +749,12 @@ def test_photos_are_kept_compact_at_their_training_size(small_scene):
     ref = read_image(data.scene.image_path(full), size=(20, 15))
     assert np.abs(img.numpy() - ref).max() <= 0.5 / 255 + 1e-6     # the box filter's average, rounded to 8 bits
     cam2, img2 = data.view(i, 2)                                    # the pyramid: area averages of that size
-    assert img2.shape == (8, 10, 3) and (cam2.width, cam2.height) == (10, 8)
+    assert img2.shape == (8, 10, 3) and (cam2.width, cam2.height) == (10, 8) and img2.dtype == torch.float32
+    from recgs_addon.core.train.data import as_float, resample
+    exact = resample(as_float(data.photo(i)).double(), 8, 10)      # kept as float16: within its rounding
+    assert (img2.double() - exact).abs().max() <= 2 ** -12
     photos = len(data.train_ids) + len(data.test_ids)
-    assert data.image_bytes() == photos * 15 * 20 * 3 + len(data.train_ids) * 8 * 10 * 3 * 4
+    assert data.image_bytes() == photos * 15 * 20 * 3 + len(data.train_ids) * 8 * 10 * 3 * 2
     assert make_trainer(small_scene, tiny_cfg()).data.camera(i).width == 40   # 1600 leaves small photos alone
 
 
@@ -785,6 +788,10 @@ def test_job_says_its_plan_and_refuses_what_cannot_fit(small_scene, tmp_path):
     assert plan["seconds_per_1000"] > 0 and plan["peak_bytes"] > plan["image_bytes"] > 0
     assert plan["lines"][0].startswith("training at 40x30: 6 training and 2 held-out views")
     assert any(line.startswith("time: about") for line in plan["lines"])
+    assert plan["peak_bytes"] >= plan["start_bytes"] > plan["image_bytes"]
+    mem = next(line for line in plan["lines"] if line.startswith("memory:"))
+    assert (f"at most {plan['peak_bytes'] / 2 ** 30:.1f} GB if the model grows to {plan['budget']:,} Gaussians"
+            in mem) == (plan["budget"] > plan["gaussians"]), mem
     for extra, msg in ((("--max-memory", "0.01"), "need about"),
                        (("--max-memory", "4", "--budget", "10000000"), "ask for at most")):
         out = tmp_path / f"refused{len(extra)}"

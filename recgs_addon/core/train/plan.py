@@ -140,7 +140,7 @@ class RunPlan:
     budget: Optional[int]           # the most the model may grow to (None: no bound)
     image_bytes: int                # decoded images, as kept
     method_bytes: int               # a caustic method's per-view state at its largest
-    peak_bytes: int                 # the estimate
+    peak_bytes: int                 # the estimate, with the model at its budget
     available_bytes: Optional[int]  # memory a run may take (None: unknown)
     seconds_per_1000: Optional[float]   # measured at the start's model size
     path: str = "eager"             # the rasterizer path the warm-up ran on
@@ -148,6 +148,7 @@ class RunPlan:
     views_per_point: Optional[float] = None    # median training views per sparse point (coverage.py)
     passes_per_point: Optional[float] = None   # ... and independent passes (frames close in time: one)
     notes: list = field(default_factory=list)
+    start_bytes: Optional[int] = None   # the estimate with the model at its size now
 
     def summary(self) -> dict:
         return asdict(self)
@@ -160,11 +161,13 @@ class RunPlan:
             res += f" (photos {self.photo_width}x{self.photo_height})"
         out = [f"training at {res}: {self.train_views} training and {self.test_views} held-out views, "
                f"images {gb(self.image_bytes)} in memory"]
-        mem = f"memory: about {gb(self.peak_bytes)} at the peak"
+        if self.start_bytes is not None and self.budget is not None and self.budget > self.gaussians:
+            mem = (f"memory: about {gb(self.start_bytes)} to start, at most {gb(self.peak_bytes)} if the model "
+                   f"grows to {self.budget:,} Gaussians")
+        else:
+            mem = f"memory: about {gb(self.peak_bytes)} at the peak"
         if self.available_bytes is not None:
-            mem += f" of {gb(self.available_bytes)} available"
-        if self.budget is not None:
-            mem += f" (up to {self.budget:,} Gaussians)"
+            mem += f" ({gb(self.available_bytes)} available)"
         out.append(mem)
         if self.views_per_point is not None:
             out.append(f"coverage: each seabed point in a median of {self.views_per_point:g} training views "
@@ -210,7 +213,8 @@ def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, 
     degree = cfg.sh_degree
     peak = estimate_peak(now, w * h, method_bytes, degree, n, trainer.budget)
     plan = RunPlan(w, h, cam.width, cam.height, len(data.train_ids), len(data.test_ids), n, trainer.budget,
-                   data.image_bytes(), method_bytes, peak, limit_bytes, None)
+                   data.image_bytes(), method_bytes, peak, limit_bytes, None,
+                   start_bytes=estimate_peak(now, w * h, method_bytes, degree, n, n))
     if limit_bytes is not None and peak > limit_bytes:
         fixed = estimate_peak(now, w * h, method_bytes, degree, n, n)
         room = int((limit_bytes - fixed) / gaussian_bytes(degree))
