@@ -15,7 +15,7 @@ from conftest import ROOT
 
 USER_DOCS = [ROOT / "README.md", ROOT / "docs" / "user_guide.md", ROOT / "docs" / "method.md",
              ROOT / "docs" / "reference.md"]
-ALL_DOCS = USER_DOCS + sorted((ROOT / "docs").glob("*.md"))
+ALL_DOCS = sorted(set(USER_DOCS) | set((ROOT / "docs").glob("**/*.md")) | {ROOT / "benchmarks" / "RESULTS.md"})
 
 
 def _tool():
