@@ -203,10 +203,9 @@ def test_regulariser_gradient_is_autograds(small_scene):
     assert torch.all(op.grad[~in_view] == 0)
 
 
-def test_cli_density_default_follows_the_mode():
+def test_cli_density_default_is_clone_split_for_every_mode():
     from recgs_addon.runner import default_density
-    assert default_density("3dgs") == "mcmc"
-    assert {default_density(m) for m in ("recgs", "filter2d", "joint", "oracle")} == {"adc"}
+    assert {default_density(m) for m in ("3dgs", "recgs", "filter2d", "joint", "oracle")} == {"adc"}
     assert preset("default", strategy=default_density("recgs")).pixels_per_gaussian == 8.0
 
 
