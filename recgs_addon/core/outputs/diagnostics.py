@@ -36,7 +36,8 @@ def blending_weights(trainer, index: int, max_side: int = SUPPORT_SIDE) -> torch
     dc = p["sh_dc"].clone().requires_grad_(True)
     k = p["sh_rest"].shape[1] if trainer.sh_degree else 0
     out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (dc, p["sh_rest"][:, :k]),
-                 viewmat, K, cam.width, cam.height, sh_degree=trainer.sh_degree, compiled=False)
+                 viewmat, K, cam.width, cam.height, sh_degree=trainer.sh_degree,
+                 compiled=trainer.compiler.compiled())   # the training's own path (numba's: 2.5x eager)
     out.rgb.sum().backward()
     return dc.grad[:, 0, :].mean(-1) * (area / SH_C0)
 
