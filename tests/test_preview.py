@@ -395,11 +395,7 @@ def test_eevee_render_matches_core_renderer(tmp_path, session, method, samples):
     apply_render_settings(scene, create_camera_object(cam, scene.collection))
     preview.ensure_preview(obj, mode="ELLIPSOIDS", display_ratio=0.01)  # renders use every Gaussian
     preview.match_trainer_colour(scene)
-    try:
-        scene.render.engine = "BLENDER_EEVEE"
-    except TypeError:
-        scene.render.engine = "BLENDER_EEVEE_NEXT"  # Blender 4.2-4.x
-    scene.eevee.taa_render_samples = samples
+    preview.use_eevee(scene, samples)
     bpy.data.materials[preview.SPLAT_MATERIAL].surface_render_method = method
     scene.render.image_settings.file_format = "PNG"
     scene.render.filepath = str(tmp_path / "eevee.png")
@@ -418,3 +414,12 @@ def test_eevee_render_matches_core_renderer(tmp_path, session, method, samples):
         write_image(ROOT / "docs/images/preview_core.png", core)
     assert core.max() > 0.5 and eevee.max() > 0.5  # the Gaussians are in view
     assert r >= 0.9, r
+
+
+def test_use_eevee_picks_this_blenders_eevee_and_its_samples(bpy_session):
+    from recgs_addon.blender import preview
+
+    scene = bpy_session.context.scene
+    scene.render.engine = "CYCLES"
+    preview.use_eevee(scene, 3)
+    assert scene.render.engine in ("BLENDER_EEVEE", "BLENDER_EEVEE_NEXT") and scene.eevee.taa_render_samples == 3

@@ -127,11 +127,7 @@ def preview_picture(job: Path, survey: Path, samples: int = 8) -> str:
         scene.camera = bpy.data.objects[name]
         preview.ensure_preview(obj, mode="ELLIPSOIDS")
         preview.match_trainer_colour(scene)
-        try:
-            scene.render.engine = "BLENDER_EEVEE"
-        except TypeError:
-            scene.render.engine = "BLENDER_EEVEE_NEXT"  # Blender 4.2-4.x
-        scene.eevee.taa_render_samples = samples
+        preview.use_eevee(scene, samples)
         scene.render.image_settings.file_format = "PNG"
         tmp = IMAGES / ".preview_render.png"
         scene.render.filepath = str(tmp)

@@ -452,6 +452,16 @@ def match_trainer_colour(scene) -> None:
             bg.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
 
 
+def use_eevee(scene, samples: int) -> None:
+    """Render ``scene`` with EEVEE at ``samples`` samples a pixel (the engine is named
+    ``BLENDER_EEVEE_NEXT`` in Blender 4.2-4.x, ``BLENDER_EEVEE`` before and since)."""
+    try:
+        scene.render.engine = "BLENDER_EEVEE"
+    except TypeError:
+        scene.render.engine = "BLENDER_EEVEE_NEXT"
+    scene.eevee.taa_render_samples = samples
+
+
 # ---------------------------------------------------------------------------------------
 # Per-object settings (a view of the modifier inputs: nothing is stored twice)
 # ---------------------------------------------------------------------------------------
