@@ -212,11 +212,10 @@ def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, 
     now = held if not str(cfg.device).startswith("cuda") else int(torch.cuda.memory_allocated(cfg.device))
     degree = cfg.sh_degree
     peak = estimate_peak(now, w * h, method_bytes, degree, n, trainer.budget)
+    fixed = estimate_peak(now, w * h, method_bytes, degree, n, n)   # the model as it is now
     plan = RunPlan(w, h, cam.width, cam.height, len(data.train_ids), len(data.test_ids), n, trainer.budget,
-                   data.image_bytes(), method_bytes, peak, limit_bytes, None,
-                   start_bytes=estimate_peak(now, w * h, method_bytes, degree, n, n))
+                   data.image_bytes(), method_bytes, peak, limit_bytes, None, start_bytes=fixed)
     if limit_bytes is not None and peak > limit_bytes:
-        fixed = estimate_peak(now, w * h, method_bytes, degree, n, n)
         room = int((limit_bytes - fixed) / gaussian_bytes(degree))
         gb = lambda b: f"{b / 2 ** 30:.1f} GB"  # noqa: E731
         if cfg.budget is None and room >= max(n, 1):
