@@ -64,41 +64,46 @@ def add_train_arguments(p) -> None:
                    help="output folder (checkpoint.pt, point_cloud.ply, metrics.json, the run's report)")
     p.add_argument("--mode", choices=["3dgs", "recgs", "filter2d", "joint", "oracle"], default="3dgs",
                    help="3dgs: plain Gaussian Splatting; recgs: with caustic removal (RecGS); "
-                        "filter2d, joint, oracle: baselines (oracle trains on --gt-images). Use recgs for photos with caustics: "
-                        "it trains on as 3dgs by itself where it finds none")
+                        "filter2d, joint, oracle: baselines (oracle trains on --gt-images). Use recgs for "
+                        "photos with caustics: it trains on as 3dgs by itself where it finds none")
     p.add_argument("--preset", choices=["default", "vanilla"], default="default",
                    help="default: lean schedule; vanilla: INRIA's 30k-iteration schedule (only to compare with it)")
-    p.add_argument("--max-minutes", type=float, default=None, help="wall-clock limit in minutes (default: none). Give one: the run uses all of it and ends with "
-                        "the model that scored best on the held-out photos")
+    p.add_argument("--max-minutes", type=float, default=None,
+                   help="wall-clock limit in minutes (default: none). Give one: the run uses all of it and ends "
+                        "with the model that scored best on the held-out photos")
     p.add_argument("--iterations", type=int, default=None,
-                   help="upper bound on optimisation steps (default: the preset's); raise it with --resume to continue "
-                        "a run that reached it")
+                   help="upper bound on optimisation steps (default: the preset's); raise it with --resume to "
+                        "continue a run that reached it")
     p.add_argument("--budget", default="auto",
                    help="maximum number of Gaussians, or 'auto': stop adding Gaussians when held-out quality "
                         "stops improving. A fixed number gives a smaller file and a faster viewer, at some quality")
     p.add_argument("--density", choices=["mcmc", "adc"], default=None,
                    help="density control: adc (INRIA's clone/split by screen gradient; the default) or mcmc "
-                        "(relocate faded Gaussians under a fixed budget, 3DGS-MCMC; 2-3.5 dB lower held-out than adc "
-                        "in 5-minute runs on clean surveys)")
-    p.add_argument("--downscale", type=int, default=1, help="train at the photo size divided by N (after --max-side): 2 or 4 for quick trials")
+                        "(relocate faded Gaussians under a fixed budget, 3DGS-MCMC; 2-3.5 dB lower held-out "
+                        "than adc in 5-minute runs on clean surveys)")
+    p.add_argument("--downscale", type=int, default=1,
+                   help="train at the photo size divided by N (after --max-side): 2 or 4 for quick trials")
     p.add_argument("--max-side", type=int, default=None,
                    help="long side of the training images at most this many pixels (default 1600, as the "
                         "reference 3DGS code; 0 = the photos' own size): memory and step time grow with it")
     p.add_argument("--max-memory", type=float, default=None,
                    help="gigabytes the run may use (default: what the machine has free); a run that would need "
                         "more is refused before it starts, and an automatic budget is capped to fit")
-    p.add_argument("--sh-degree", type=int, default=3, choices=range(4), help="cap on the SH degree (view-dependent colour); the default preset raises the degree only where "
-                        "it helps. 0 gives the smallest file")
+    p.add_argument("--sh-degree", type=int, default=3, choices=range(4),
+                   help="cap on the SH degree (view-dependent colour); the default preset raises the degree "
+                        "only where it helps. 0 gives the smallest file")
     p.add_argument("--seed", type=int, default=0, help="seed of the random generators")
     p.add_argument("--device", default="cpu", help="cpu, cuda or mps (where torch has them)")
     p.add_argument("--images", default=None,
                    help="train on this image folder instead of images/: a name inside the scene (e.g. clean) "
                         "or a path; the same file names")
-    p.add_argument("--holdout-every", type=int, default=8, help="hold out every Nth image (by name, from the 5th) to score the model; 0 = none, which also "
-                        "leaves no score to keep the best model by")
+    p.add_argument("--holdout-every", type=int, default=8,
+                   help="hold out every Nth image (by name, from the 5th) to score the model; 0 = none, which "
+                        "also leaves no score to keep the best model by")
     p.add_argument("--init-ply", type=Path, default=None, help="start from these Gaussians")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    p.add_argument("--checkpoint-every", type=float, default=30.0, help="seconds between checkpoints (also the panel's live updates); a crash loses at most this")
+    p.add_argument("--checkpoint-every", type=float, default=30.0,
+                   help="seconds between checkpoints (also the panel's live updates); a crash loses at most this")
     p.add_argument("--eager", action="store_true",
                    help="plain PyTorch rasterizer: neither numba's kernels nor torch.compile (about 2.5x slower "
                         "steps; the reference the fast paths are tested against)")
