@@ -52,23 +52,11 @@ def side_by_side(images: list[np.ndarray], gap: int = GAP) -> np.ndarray:
 
 
 def panel_snapshots(scene: Path) -> dict[str, str]:
-    """The sidebar as text after importing ``scene``, idle and while a job runs."""
-    import bpy
+    """The sidebar as text after importing ``scene``, idle and while a job runs, with the
+    repository's path written as ``/path/to``."""
+    from tools.panel_snapshot import snapshots
 
-    from recgs_addon import blender as addon
-    from tools.panel_snapshot import SAMPLE_RUNNING, snapshot
-
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    addon.register()
-    try:
-        bpy.ops.recgs.import_colmap(directory=str(scene.resolve()))
-        out = {"idle": snapshot(bpy.context)}
-        s = bpy.context.scene.recgs
-        for k, v in SAMPLE_RUNNING.items():
-            setattr(s, k, v)
-        out["running"] = snapshot(bpy.context, running=True)
-    finally:
-        addon.unregister()
+    out = snapshots(scene, ["idle", "running"])
     return {k: v.replace(str(ROOT), "/path/to") + "\n" for k, v in out.items()}
 
 

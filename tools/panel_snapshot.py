@@ -167,13 +167,9 @@ def snapshot(context, running: bool = False) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> int:
-    if argv is None:
-        argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--state", choices=["idle", "running", "done"], default="idle")
-    p.add_argument("--scene", type=Path, default=None, help="COLMAP survey to import first")
-    args = p.parse_args(argv)
+def snapshots(scene: Path | None, states: list[str]) -> dict[str, str]:
+    """The sidebar in each of ``states`` (idle, running, done), in a factory-fresh session
+    with the add-on registered and, if given, the COLMAP survey ``scene`` imported first."""
     import bpy
 
     from recgs_addon import blender as addon
@@ -181,14 +177,27 @@ def main(argv=None) -> int:
     bpy.ops.wm.read_factory_settings(use_empty=True)
     addon.register()
     try:
-        if args.scene is not None:
-            bpy.ops.recgs.import_colmap(directory=str(args.scene.resolve()))
-        s = bpy.context.scene.recgs
-        for k, v in {"running": SAMPLE_RUNNING, "done": SAMPLE_DONE}.get(args.state, {}).items():
-            setattr(s, k, v)
-        print(snapshot(bpy.context, running=args.state == "running"))
+        if scene is not None:
+            bpy.ops.recgs.import_colmap(directory=str(scene.resolve()))
+        out = {}
+        for state in states:
+            s = bpy.context.scene.recgs
+            for k, v in {"running": SAMPLE_RUNNING, "done": SAMPLE_DONE}.get(state, {}).items():
+                setattr(s, k, v)
+            out[state] = snapshot(bpy.context, running=state == "running")
+        return out
     finally:
         addon.unregister()
+
+
+def main(argv=None) -> int:
+    if argv is None:
+        argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--state", choices=["idle", "running", "done"], default="idle")
+    p.add_argument("--scene", type=Path, default=None, help="COLMAP survey to import first")
+    args = p.parse_args(argv)
+    print(snapshots(args.scene, [args.state])[args.state])
     return 0
 
 
