@@ -194,7 +194,12 @@ def test_recurrence_converges_stops_and_removes_the_caustics(caustic_scene):
     ids = tr.data.train_ids
     assert tr.ccfg.caustic_dc is False  # the default: caustics move light, they add none
     for i in ids:
-        assert tr.maps[i].mean(dim=(0, 1)).abs().max() < 1e-6
+        # the estimate has zero mean (float32); the kept map is its float16 copy, whose
+        # rounding (half a unit in the last place, 2^-11 relative) may move the mean by that much
+        est = tr._estimate(tr.data.view(i)[1], tr.trainer.render_view(i), tr.k)
+        assert est.dtype == torch.float32 and est.mean(dim=(0, 1)).abs().max() < 1e-6
+        m = tr.maps[i].float()
+        assert (m.mean(dim=(0, 1)).abs() <= 1e-6 + 2.0 ** -11 * m.abs().mean(dim=(0, 1))).all()
     captured = np.mean([psnr(tr.data.view(i)[1], tr.data.gt_view(i)) for i in ids])
     cleaned = np.mean([psnr(tr.decaustic_image(i).clamp(0, 1), tr.data.gt_view(i)) for i in ids])
     assert cleaned > captured + 4.0, (captured, cleaned)
