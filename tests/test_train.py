@@ -812,3 +812,32 @@ def test_plan_caps_an_automatic_budget_to_the_memory_there_is(small_scene):
     p = planning.plan_run(tr, limit_bytes=fixed + planning.gaussian_bytes(3) * 100_000, warmup_steps=0)
     assert p.budget_capped_from == auto and 90_000 < p.budget == tr.budget < 110_000
     assert "capped at" in p.lines()[-1]
+
+
+def test_time_between_segments_counts_against_the_limit(small_scene):
+    """Every second from the clock's start counts: work a driving method does between training
+    segments (renders, estimates) and the time before the first step alike."""
+    import time as _time
+
+    tr = make_trainer(small_scene, tiny_cfg(iterations=10 ** 6, max_minutes=0.02))   # 1.2 s
+    origin = _time.perf_counter() - 0.5          # the command started half a second ago
+    tr.start_clock(origin)
+    assert tr.train_until(until=lambda: tr.step >= 3) == "until"
+    assert tr.elapsed >= 0.5
+    _time.sleep(1.0)                             # work between segments
+    steps = tr.step
+    assert tr.train_until() == "time limit"
+    assert tr.step == steps                      # no step after the limit had passed
+    assert tr.elapsed >= 1.2
+
+
+def test_resumed_clock_goes_on_from_the_saved_time(small_scene):
+    tr = make_trainer(small_scene, tiny_cfg(iterations=6))
+    tr.run()
+    state = tr.state_dict()
+    again = make_trainer(small_scene, tiny_cfg(iterations=12))
+    again.load_state_dict(state)
+    saved = state["elapsed"]
+    again.train_until()
+    assert again.elapsed > saved
+    assert again.elapsed < saved + 60          # counted from the resume, not from the first run's start

@@ -95,7 +95,10 @@ class Trainer:
         self.stats = density.GradientStats.zeros(len(gaussians), self.device)
         self.row_grads = RowGrads()   # gradients of the rows in view only (large models)
         self.step = 0
+        #: seconds of the run so far, as the time limit counts them: wall clock from
+        #: :meth:`start_clock` on, training segments and the work between them alike
         self.elapsed = 0.0
+        self._clock: Optional[float] = None   # perf_counter() reading at which elapsed was 0
         self.order: list[int] = []
         self.history: list[dict] = []
         self.budget = cfg.budget  # may be frozen by "auto"
@@ -108,7 +111,10 @@ class Trainer:
         self.reset_done = False
         self.done_reason: Optional[str] = None
         self.last_densify = -1
-        #: keep_best: the model that scored best on the held-out photos as captured
+        #: keep_best: the model that scored best on the held-out photos as captured (or, with
+        #: ``best_by = "psnr"``, against the objective's held-out references: a driving method
+        #: whose references do not follow the model sets that)
+        self.best_by = "psnr_captured"
         #: (``score``, ``step``, and a ``snapshot()``)
         self.best: Optional[dict] = None
         self.best_step: Optional[int] = None   # the step of the model a run ended with, if restored
@@ -492,7 +498,7 @@ class Trainer:
                              "gaussians": int(self.params["means"].shape[0]), "sh_degree": self.sh_degree,
                              "elapsed": round(self.elapsed, 2), "phase": self.phase})
         if c.keep_best:
-            self._consider_best(metrics["psnr_captured"])
+            self._consider_best(metrics[self.best_by])
         if value > self.best_psnr + c.plateau_min_gain:
             self.best_psnr, self.since_best = value, 0
         else:
@@ -549,7 +555,7 @@ class Trainer:
         at, or None when nothing changed."""
         if not self.cfg.keep_best or self.best is None or self.best["step"] == self.step:
             return None
-        score_now = self.heldout_psnr()
+        score_now = self.heldout_psnr() if self.best_by == "psnr_captured" else self.evaluate().get(self.best_by)
         if score_now is not None and score_now >= self.best["score"]:
             return None
         self.restore(self.best)
@@ -580,7 +586,10 @@ class Trainer:
         stays set until the caller clears it. Checkpoints are taken every
         ``checkpoint_every_s`` seconds, counted across segments."""
         c = self.cfg
-        t_start = time.perf_counter() - self.elapsed
+        if self._clock is None:
+            self.start_clock()
+        t_start = self._clock
+        self.elapsed = time.perf_counter() - t_start   # the work since the last segment counts too
         self.compiler.take_stall()   # a path loaded before the clock started is not the run's
         if self._last_checkpoint is None:
             self._last_checkpoint = time.perf_counter()
@@ -621,6 +630,13 @@ class Trainer:
             if on_checkpoint and time.perf_counter() - self._last_checkpoint >= checkpoint_every_s:
                 on_checkpoint(self)
                 self._last_checkpoint = time.perf_counter()
+
+    def start_clock(self, origin: Optional[float] = None) -> None:
+        """Count the run's time from ``origin`` (a ``time.perf_counter()`` reading, default now;
+        a job passes the moment its command started), on top of what a resumed run had spent.
+        From then on every second counts against the time limit: training, and the renders,
+        estimates and scores between training segments."""
+        self._clock = (time.perf_counter() if origin is None else origin) - self.elapsed
 
     def schedule_elapsed(self) -> float:
         """Seconds of training as the schedule counts them: wall clock less the compiler's
@@ -671,6 +687,7 @@ class Trainer:
 
     def load_state_dict(self, s: dict) -> None:
         self.step, self.elapsed = s["step"], s["elapsed"]
+        self._clock = None   # the clock goes on from the saved time when training resumes
         self.params = {n: torch.nn.Parameter(v.to(self.device)) for n, v in s["params"].items()}
         self.optimizer = self._make_optimizer()
         fused = [g.get("fused") for g in self.optimizer.param_groups]
