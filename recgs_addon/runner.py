@@ -131,8 +131,10 @@ def add_train_arguments(p) -> None:
                    help="recgs: stop when the relative change of C falls below this "
                         f"(default {CausticConfig.recurrence_tol})")
     g.add_argument("--estimator", choices=list(ESTIMATORS), default=None,
-                   help="recgs: auto (default) picks likelihood where the survey sees each seabed point in a "
-                        "median of 8 or more independent passes and lowpass below; lowpass: C from the low-passed "
+                   help="recgs: auto (default) picks passes where the survey sees each seabed point in a "
+                        "median of 2 or more independent passes and lowpass below; passes: each frame's target "
+                        "from the other frames that saw each point (the floor of their light, over the whole "
+                        "band; the survey's sparse points give the geometry); lowpass: C from the low-passed "
                         "residual (the paper); likelihood: fit each point to the light its views most likely "
                         "saw (the survey's distribution of caustic gains); consensus: the multi-view consensus "
                         "of the photos warped with the model's depth; lightfield: a per-view light field "
@@ -207,6 +209,7 @@ def tune_allocator() -> str:
 
 
 def run_train(args) -> int:
+    t_command = time.perf_counter()   # the time limit counts from here (Trainer.start_clock)
     import torch
 
     allocator = tune_allocator()
@@ -261,6 +264,7 @@ def run_train(args) -> int:
         # before it writes anything (training would read them all anyway; they stay cached)
         trainer.data.load_all(trainer.level(), on_image=_reading_progress(time.perf_counter()))
         plan = _plan(args, method, trainer)
+        trainer.start_clock(t_command)
     except RecGSError as exc:
         _emit("error", message=str(exc))
         print(f"error: {exc}", file=sys.stderr)
@@ -276,7 +280,7 @@ def run_train(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     try:
-        return _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator, plan)
+        return _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator, plan, t_command)
     finally:
         lock.__exit__(None, None, None)
 
@@ -314,7 +318,7 @@ def _plan(args, method, trainer):
     return plan
 
 
-def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator, plan) -> int:
+def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator, plan, t_command) -> int:
     from .core.io.ply import write_gaussian_ply
     from .core.train.checkpoint import save_checkpoint
 
@@ -368,14 +372,14 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
         for s, h in old.items():
             signal.signal(s, h)
     try:
-        return _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint, plan)
+        return _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint, plan, t_command)
     except RecGSError as exc:   # a full disk or an unwritable folder at the end: one line, the last checkpoint kept
         _emit("error", message=f"{exc} (training ended at iteration {trainer.step}; the last checkpoint is kept)")
         print(f"error: {exc}", file=sys.stderr)
         return 1
 
 
-def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint, plan) -> int:
+def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint, plan, t_command) -> int:
     """The end of a run: the last checkpoint, the output images, metrics and report."""
     from .core.outputs.diagnostics import support_summary, view_support
     from .core.train.coverage import COVERAGE_VIEWS, spread, surface_coverage
@@ -394,7 +398,8 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
     coverage = surface_coverage(trainer, source_ids=spread(trainer.data.train_ids, COVERAGE_VIEWS)).summary()
     metrics = {
         "status": "done", "reason": reason, "iterations": trainer.step,
-        "seconds": round(trainer.elapsed, 2), "gaussians": int(trainer.params["means"].shape[0]),
+        "seconds": round(trainer.elapsed, 2), "job_seconds": round(time.perf_counter() - t_command, 2),
+        "gaussians": int(trainer.params["means"].shape[0]),
         "sh_degree": trainer.sh_degree, "test_views": [trainer.data.scene.cameras[i].name for i in trainer.data.test_ids],
         "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
         "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"),
