@@ -87,6 +87,7 @@ METHODS = {
     "recgs-last": ["--mode", "recgs", "--keep-last"],
     "recgs-trim": ["--mode", "recgs", "--robust-k", "1.5"],
     "recgs-consensus": ["--mode", "recgs", "--estimator", "consensus"],
+    "recgs-passes": ["--mode", "recgs", "--estimator", "passes"],
     "recgs-lowpass": ["--mode", "recgs", "--estimator", "lowpass", "--fit-loss", "l1"],
     "recgs-likelihood": ["--mode", "recgs", "--estimator", "likelihood"],
     "recgs-lf": ["--mode", "recgs", "--estimator", "lightfield", "--fit-loss", "l1"],

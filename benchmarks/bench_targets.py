@@ -1,0 +1,121 @@
+"""How good are the pass estimator's caustic-free targets, before any training?
+
+    .venv/bin/python benchmarks/bench_targets.py SURVEY [--model MODEL.ply] [--depth points|true|model]
+
+For a generated survey with ground truth (``clean/``), builds every training frame's target as
+the pass estimator does (core/caustics/passes.py) and prints, against ground truth: the photos,
+the targets (the mean PSNR over the training frames, as ``psnr_decaustic_gt`` in a run's
+metrics; where too few passes saw a pixel the photo stands in, or RecGS's low-pass target when a
+model is given), and the depth error of the geometry (where the survey has the generator's true
+depth, ``tools/make_survey.py --save-depth``). ``--depth``: ``points`` (the survey's sparse
+points refined by the plane sweep: what a run uses), ``true`` (the generator's depth: the
+estimator's ceiling) or ``model`` (the given model's own rendered depth, unrefined). Prints the
+time of each part.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from recgs_addon.core.caustics import fft_filter, passes  # noqa: E402
+from recgs_addon.core.caustics.estimate import compensate_caustics  # noqa: E402
+from recgs_addon.core.io.colmap import load_scene  # noqa: E402
+from recgs_addon.core.io.frames import read_frame_times  # noqa: E402
+from recgs_addon.core.io.ply import read_gaussian_ply  # noqa: E402
+from recgs_addon.core.render.rasterizer import render  # noqa: E402
+from recgs_addon.core.train.data import TrainData, view_tensors  # noqa: E402
+from recgs_addon.core.train.losses import psnr  # noqa: E402
+
+
+def model_renders(ply: Path, data: TrainData, ids) -> dict:
+    """{i: (rgb, surface depth, alpha)} of the PLY's model in frames ``ids``."""
+    g = read_gaussian_ply(ply)
+    t = [torch.from_numpy(np.ascontiguousarray(a)).float()
+         for a in (g.means, g.log_scales, g.quats, g.logit_opacities, g.sh)]
+    out = {}
+    for i in ids:
+        cam = data.camera(i)
+        vm, K = view_tensors(cam, "cpu")
+        with torch.no_grad():
+            r = render(*t, vm, K, cam.width, cam.height, sh_degree=g.sh_degree)
+        out[i] = (r.rgb, r.depth / r.alpha.clamp_min(1e-6), r.alpha)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("survey", type=Path)
+    ap.add_argument("--model", type=Path, default=None, help="a trained model's PLY (low-pass fallback, --depth model)")
+    ap.add_argument("--depth", choices=("points", "true", "model"), default="points")
+    ap.add_argument("--holdout-every", type=int, default=8)
+    args = ap.parse_args(argv)
+    if args.depth == "model" and args.model is None:
+        ap.error("--depth model needs --model")
+
+    scene = load_scene(args.survey)
+    data = TrainData(scene, 1, args.holdout_every, gt_scene=load_scene(args.survey, image_dir=args.survey / "clean"),
+                     max_side=1600)
+    ids = data.train_ids
+    times = read_frame_times(args.survey) or {}
+    photos = {i: data.view(i)[1] for i in ids}
+    gts = {i: data.gt_view(i) for i in ids}
+    print(f"{args.survey.name}: {len(ids)} training frames; photos {np.mean([psnr(photos[i], gts[i]) for i in ids]):.2f} dB")
+    renders = model_renders(args.model, data, ids) if args.model else None
+    fallback = None
+    if renders:
+        k = fft_filter.choose_k([photos[i] - renders[i][0] for i in ids])
+        low = [compensate_caustics(photos[i], renders[i][0], k) for i in ids]
+        fallback = low
+        print(f"  model render {np.mean([psnr(renders[i][0].clamp(0, 1), gts[i]) for i in ids]):.2f} dB, "
+              f"low-pass targets (k {k}) {np.mean([psnr(x.clamp(0, 1), gts[i]) for x, i in zip(low, ids)]):.2f} dB")
+    true = {}
+    if (args.survey / "depth").is_dir():
+        true = {i: torch.from_numpy(np.load(args.survey / "depth" / (Path(scene.cameras[i].name).stem + ".npy"))).float()
+                for i in ids}
+    views = []
+    for i in ids:
+        cam = data.camera(i)
+        vm, K = view_tensors(cam, "cpu")
+        if args.depth == "true":
+            d = true[i]
+        elif renders:   # points: the model's depth stands where there are no points, and is swept too
+            d = torch.where(renders[i][2] > 0.5, renders[i][1], torch.full_like(renders[i][1], float("nan")))
+        else:
+            d = torch.full((cam.height, cam.width), float("nan"))
+        views.append(passes.PassView(photos[i], d, torch.isfinite(d) & (d > 0), vm, K, times.get(cam.name)))
+    t = time.perf_counter()
+    if args.depth == "points":
+        overlap = passes.survey_geometry(views, torch.tensor(np.asarray(scene.points), dtype=torch.float32))
+    else:
+        overlap = passes.overlap_matrix(views)
+    t_geo = time.perf_counter() - t
+    if true:
+        err = np.concatenate([((v.surface - true[i]).abs() / true[i])[torch.isfinite(v.surface) & torch.isfinite(true[i])]
+                              .numpy() for v, i in zip(views, ids)])
+        print(f"  depth ({args.depth}): median error {100 * np.median(err):.2f} %, 90th percentile "
+              f"{100 * np.percentile(err, 90):.2f} % ({t_geo:.1f} s)")
+    t = time.perf_counter()
+    light = passes.light_statistics(views, overlap)
+    settings = passes.PassSettings(**({"pass_seconds": light["correlation_s"]} if light["correlation_s"] else {}))
+    t_light = time.perf_counter() - t
+    print(f"  light: std {light['light_std']} log units, correlation time {light['correlation_s']} s "
+          f"(shared variance by lag {light['shared']}; {t_light:.1f} s)")
+    t = time.perf_counter()
+    targets, info = passes.pass_targets(views, settings, fallback, overlap=overlap)
+    t_est = time.perf_counter() - t
+    p = np.mean([psnr(x.clamp(0, 1), gts[i]) for x, i in zip(targets, ids)])
+    print(f"  targets {p:.2f} dB (median passes {np.median(info['passes']):g}, share from the passes "
+          f"{np.mean(info['share']):.2f}; {t_est:.1f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

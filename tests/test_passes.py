@@ -1,0 +1,189 @@
+"""The pass estimator (core/caustics/passes.py) on an analytic seabed: a textured plane seen
+from above by a lawnmower of frames, under a network of bright lines that moves between them."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from recgs_addon.core.caustics import passes as P
+from recgs_addon.core.caustics.recgs import LIGHT_FLOOR
+from recgs_addon.core.caustics.lightfield import linear_to_srgb, srgb_to_linear
+from recgs_addon.core.train.losses import psnr
+
+W, H, F = 96, 72, 120.0   # image size and focal length (pixels): 2 cm a pixel on the seabed
+ALTITUDE = 2.5
+_rng = np.random.default_rng(7)
+SAND = [(r * math.cos(th), r * math.sin(th), ph) for r, th, ph in
+        zip(_rng.uniform(2 * math.pi / 0.2, 2 * math.pi / 0.1, 8), _rng.uniform(0, math.pi, 8), _rng.uniform(0, 6.3, 8))]
+
+
+def albedo(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(..., 3) linear albedo of the seabed at world (x, y): broad patches and fine texture."""
+    a = 0.18 + 0.08 * torch.sin(1.7 * x + 0.3) * torch.cos(1.3 * y)
+    for k, (kx, ky, ph) in enumerate(SAND):   # sand: fine texture of periods 10-20 cm (5-10 px)
+        a = a + 0.03 * torch.sin(kx * x + ky * y + ph)
+    return torch.stack([a * 0.8, a, a * 1.1], -1).clamp_min(0.02)
+
+
+def light(x: torch.Tensor, y: torch.Tensor, t: float, strength: float) -> torch.Tensor:
+    """Caustic gain (mean about 1): thin bright lines over a dimmer floor, moving with ``t``."""
+    if strength == 0:
+        return torch.ones_like(x)
+    s1 = torch.sin(5.0 * x + 2.1 * t + 0.7 * torch.sin(3.0 * y + t))
+    s2 = torch.sin(4.3 * y - 1.7 * t + 0.9 * torch.sin(2.5 * x - 0.6 * t))
+    lines = torch.exp(-(s1 / 0.25) ** 2) + torch.exp(-(s2 / 0.25) ** 2)
+    g = 0.25 + lines
+    return 1.0 + strength * (g / 0.62 - 1.0)
+
+
+def camera(cx: float, cy: float):
+    """(viewmat (4, 4), K (3, 3)) of a camera at (cx, cy, ALTITUDE) looking straight down."""
+    R = torch.tensor([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+    C = torch.tensor([cx, cy, ALTITUDE])
+    vm = torch.eye(4)
+    vm[:3, :3] = R
+    vm[:3, 3] = -R @ C
+    K = torch.tensor([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
+    return vm, K
+
+
+def frame(cx, cy, t, strength):
+    """(photo sRGB (H, W, 3), ground truth sRGB, depth (H, W), viewmat, K) of one frame."""
+    vm, K = camera(cx, cy)
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    x = cx + (u - W / 2) / F * ALTITUDE
+    y = cy - (v - H / 2) / F * ALTITUDE
+    a = albedo(x, y)
+    g = light(x, y, t, strength).unsqueeze(-1)
+    photo = linear_to_srgb((a * g).clamp(0, 1))
+    return photo, linear_to_srgb(a), torch.full((H, W), ALTITUDE), vm, K
+
+
+def survey(strength=0.9, rows=3, per_row=10, step=0.15, row_gap=0.6, dt=0.33, light_speed=1.0):
+    """Frames along a lawnmower (``rows`` rows of ``per_row`` frames, ``dt`` s apart), the light
+    moving ``light_speed`` times as fast as ``light`` says."""
+    views, gts = [], []
+    t = 0.0
+    for r in range(rows):
+        xs = [k * step for k in range(per_row)]
+        if r % 2:
+            xs = xs[::-1]
+        for x in xs:
+            photo, gt, depth, vm, K = frame(x, r * row_gap, t * light_speed, strength)
+            views.append(P.PassView(photo, depth, torch.ones(H, W, dtype=torch.bool), vm, K, t))
+            gts.append(gt)
+            t += dt
+        t += 6.0   # the turn at the end of a row
+    return views, gts
+
+
+def test_choose_passes_groups_by_time_and_respects_sources_and_budget():
+    views, _ = survey(rows=2, per_row=8)
+    ov = P.overlap_matrix(views)
+    s = P.PassSettings(pass_seconds=1.0, per_pass=2, max_frames=6)
+    groups = P.choose_passes(3, views, ov, s)
+    assert groups[0][0] == 3
+    assert sum(len(g) for g in groups[1:]) + len(groups[0]) - 1 <= 6
+    for g in groups[1:]:
+        ts = [views[j].time for j in g]
+        assert max(ts) - min(ts) < 1.0 and all(abs(t - views[3].time) >= 1.0 for t in ts)
+    for j in groups[0][1:]:
+        assert abs(views[j].time - views[3].time) < 1.0
+    only = list(range(8, 16))   # the other row only
+    groups = P.choose_passes(3, views, ov, s, sources=only)
+    assert all(j in only for g in groups[1:] for j in g) and groups[0] == [3]
+
+
+def test_targets_take_the_light_out_and_keep_the_mean_light():
+    views, gts = survey()
+    targets, info = P.pass_targets(views, P.PassSettings(pass_seconds=0.5))
+    mid = [k for k in range(len(views)) if info["share"][k] > 0.5]
+    assert len(mid) > len(views) // 2
+    photos = np.mean([psnr(views[k].photo, gts[k]) for k in mid])
+    got = np.mean([psnr(targets[k].clamp(0, 1), gts[k]) for k in mid])
+    assert got > photos + 6.0, (photos, got)
+    # the floor of the light is brought back to the mean light the photos hold (linear light)
+    lin = [srgb_to_linear(targets[k].clamp(0, 1)).sum((0, 1)) for k in mid]
+    ref = [srgb_to_linear(views[k].photo).sum((0, 1)) for k in mid]
+    ratio = torch.stack(lin).sum(0) / torch.stack(ref).sum(0)
+    assert ((ratio - 1).abs() < 0.03).all(), ratio
+
+
+def test_too_few_passes_keep_the_fallback():
+    views, _ = survey(rows=1, per_row=3, step=0.2)
+    fallback = [torch.full_like(v.photo, 0.5) for v in views]
+    targets, info = P.pass_targets(views, P.PassSettings(pass_seconds=10.0, min_passes=2), fallback)
+    for t in targets:   # all frames within one pass: nothing but the fallback
+        assert torch.equal(t, torch.full_like(t, 0.5))
+    assert info["share"] == [0.0] * 3
+
+
+def test_light_statistics_measure_the_light_and_its_time():
+    views, _ = survey(strength=0.0, rows=2, per_row=10)
+    still = P.light_statistics(views, P.overlap_matrix(views))
+    assert still["light_std"] < LIGHT_FLOOR / 2   # resampled texture only
+    views, _ = survey(strength=0.9, rows=2, per_row=10)
+    lit = P.light_statistics(views, P.overlap_matrix(views))
+    assert lit["light_std"] > 0.15
+    assert lit["correlation_s"] is not None and lit["correlation_s"] <= 1.0
+    slow, _ = survey(strength=0.9, rows=2, per_row=10, light_speed=0.25)   # the light moves 4x slower
+    assert P.light_statistics(slow, P.overlap_matrix(slow))["correlation_s"] >= 2 * lit["correlation_s"]
+
+
+def test_points_depth_interpolates_a_slanted_plane():
+    vm, K = camera(0.0, 0.0)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-1, 1, (600, 2))
+    z = 0.1 * xy[:, 0]                     # seabed sloping along x
+    pts = torch.tensor(np.c_[xy, z], dtype=torch.float32)
+    d = P.points_depth(vm, K, H, W, pts)
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    # exact depth of the plane z = 0.1 x through each pixel's ray
+    rx = (u - W / 2) / F
+    true = ALTITUDE / (1 + 0.1 * rx)
+    ok = torch.isfinite(d)
+    assert ok.float().mean() > 0.95
+    assert ((d[ok] - true[ok]).abs() / true[ok]).median() < 0.005
+
+
+def test_refine_depth_aligns_texture():
+    views, _ = survey(strength=0.9, rows=2, per_row=8)
+    ov = P.overlap_matrix(views)
+    i = 4
+    true = views[i].surface.clone()
+    views[i].surface = true * 1.012          # a prior 1.2 % too far
+    nbrs = P.sweep_neighbours(i, views, ov)
+    assert nbrs and i not in nbrs
+    refined = P.refine_depth(i, views, nbrs)
+    before = ((views[i].surface - true).abs() / true).median()
+    after = ((refined - true).abs() / true).median()
+    assert after < 0.6 * before, (before, after)
+
+
+def test_survey_geometry_prefers_points_to_a_short_model_depth():
+    views, _ = survey(strength=0.9, rows=2, per_row=8)
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-1, 3, (3000, 2))
+    pts = torch.tensor(np.c_[xy, np.zeros(len(xy))], dtype=torch.float32)
+    for v in views:   # a model whose Gaussians float 4 % in front of the seabed
+        v.surface = v.surface * 0.96
+    P.survey_geometry(views, pts)
+    err = torch.stack([((v.surface - ALTITUDE).abs() / ALTITUDE).median() for v in views])
+    assert err.max() < 0.005, err
+
+
+def test_pixels_without_a_surface_take_no_part_in_the_calibration():
+    """Where no frame knows the surface (no points, no model), the photo's light cannot be
+    compared with anything: those pixels neither calibrate the floor nor get an estimate."""
+    views, _ = survey(rows=2, per_row=8)
+    for v in views:
+        v.covered = v.covered.clone()
+        v.covered[:, :30] = False
+    est, wts, info = P.pass_estimates(views, P.PassSettings(pass_seconds=0.5))
+    assert all(torch.isfinite(e).all() for e in est)
+    assert all((w[:, :30] == 0).all() for w in wts)
+    # one frame: the floor is the photo itself (gain 1); more: the floor is darker than the mean
+    assert all(0.999 < float(g.min()) and float(g.max()) < 3.0 for g in info["gains"].values())
