@@ -25,7 +25,7 @@ class Filter2D(Method):
     def __init__(self, trainer: Trainer, ccfg: CausticConfig):
         super().__init__(trainer, ccfg)
         self.k: Optional[int] = ccfg.caustic_k or None
-        self.targets = FixedTargets(reference=lambda image, render: fft_filter.filter2d(
+        self.targets = FixedTargets(reference=lambda index, image, render: fft_filter.filter2d(
             image, self.k or fft_filter.DEFAULT_K))
         data = self.data
         if self.k is None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 from ..errors import RecGSError
 
@@ -15,7 +16,7 @@ MODES = ("3dgs", "oracle", "recgs", "filter2d", "joint")
 #: Modes that train on caustic-free estimates (and write caustic maps).
 CAUSTIC_MODES = ("recgs", "filter2d", "joint")
 #: How RecGS estimates each view's caustics (recgs.py).
-ESTIMATORS = ("auto", "lowpass", "consensus", "lightfield", "likelihood")
+ESTIMATORS = ("auto", "lowpass", "passes", "consensus", "lightfield", "likelihood")
 
 
 @dataclass
@@ -25,7 +26,8 @@ class CausticConfig:
     caustic_dc: bool = False             # recgs: keep C's DC term (the paper); False: C has zero mean per view
     caustic_model: str = "additive"      # additive: I - C (paper) | multiplicative: I / exp(C_log)
     warmup: int = 3000                   # recgs: at most this many plain steps before the first recurrence
-    warmup_share: float = 0.5            # recgs: ... and at most this share of the time limit
+    warmup_share: Optional[float] = None  # recgs: ... and at most this share of the time limit
+                                          # (None: the estimator's, recgs.WARMUP_SHARE)
     recurrence_patience: int = 2         # recgs: rounds in a row that hurt held-out views before C is dropped
     harm_tol: float = 0.5                # recgs: dB below the plain model's held-out PSNR that counts as hurting
     stall_ratio: float = 0.6             # recgs: C is not settling when its change shrinks by less than
@@ -35,7 +37,9 @@ class CausticConfig:
     recurrence_tol: float = 0.1          # stop when mean |dC| / mean |C| falls below this
     caustic_floor: float = 0.01          # recgs: C is dropped when mean |C| is below this (1 % of full scale)
     estimator: str = "auto"              # recgs: auto = from the survey's views per point (recgs.choose_estimator)
-                                         # | lowpass: C = lowpass(I - render) (paper) | consensus: I - multi-view consensus
+                                         # | lowpass: C = lowpass(I - render) (paper)
+                                         # | passes: the floor of the light over the passes that saw each point (passes.py)
+                                         # | consensus: I - multi-view consensus
                                          # | lightfield: low band + one-sided coherent light over a floor (lightfield.py)
     lf_lambda: float = 0.05              # lightfield: TV weight (log light per pixel of edge)
     lf_tau: float = 0.02                 # lightfield: dead band (log light) below which light is not taken out
@@ -77,6 +81,8 @@ class CausticConfig:
             raise RecGSError(f"robust trimming k must be >= 0 (0 = off), got {self.robust_k}")
         if self.recurrence_steps < 1:
             raise RecGSError(f"recurrence steps must be at least 1, got {self.recurrence_steps}")
+        if self.warmup_share is not None and not 0 < self.warmup_share <= 1:   # NaN fails this too
+            raise RecGSError(f"warm-up share must be in (0, 1], got {self.warmup_share}")
         if self.warmup < 0:
             raise RecGSError(f"warmup must be 0 or more steps, got {self.warmup}")
         if self.max_recurrences < 0:

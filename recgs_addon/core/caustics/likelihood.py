@@ -221,4 +221,4 @@ class LikelihoodObjective(Objective):
         return w * self.gain(log_ratio(photo, render)) / w.mean()
 
     def reference(self, index, image, render):
-        return image if self._reference is None else self._reference(image, render)
+        return image if self._reference is None else self._reference(index, image, render)

@@ -44,10 +44,13 @@ come from ``TrainData.gt_view`` and are only reported. Settings: ``config.py``.
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import Callable, Optional
 
+import numpy as np
 import torch
 
+from ..io.frames import read_frame_times
 from ..train.data import view_tensors
 from ..train.losses import psnr
 from ..train.trainer import PLATEAU, Progress, Trainer
@@ -55,7 +58,7 @@ from . import fft_filter
 from .config import CausticConfig
 from .consensus import consensus_targets
 from .estimate import compensate_caustics, estimate_caustics, remove_caustics
-from . import lightfield, likelihood
+from . import lightfield, likelihood, passes
 from .method import Method
 from .robust import TrimmedTargets, apply_gain, colour_gain, trim_weights
 
@@ -67,35 +70,39 @@ REFRESH_EVERY = 5
 
 #: auto: the survey's median independent passes over a seabed point (sparse points, before
 #: training; frames under a second apart count once, core/train/coverage.py) from which the
-#: gain likelihood is chosen; below it, the paper's low-pass estimate. A point's most likely
-#: colour beats its median only with enough independent looks at the light (the per-point
-#: bound, benchmarks/pointwise_bound.py: from about 6 on light networks); on dive surveys of 4
-#: passes the low-pass estimate scored higher (benchmarks/RESULTS.md).
-LIKELIHOOD_PASSES = 8
+#: targets come from the passes (``passes.py``); below it, the paper's low-pass estimate. With
+#: two passes a point the floor of the light is seen at most points; where fewer passes saw a
+#: pixel the pass estimator keeps the low-pass target itself (benchmarks/RESULTS.md).
+PASSES_MIN = 2
 
 
 def choose_estimator(data) -> tuple[str, str]:
-    """The estimator ``auto`` stands for on this survey, and why: the gain likelihood where
-    each seabed point is seen in enough independent passes to tell its colour from the light
-    moving over it, the low-pass estimate otherwise."""
+    """The estimator ``auto`` stands for on this survey, and why: the passes where the survey's
+    sparse points show each seabed point seen in enough independent passes, the low-pass
+    estimate otherwise."""
     from ..train.coverage import sparse_coverage
 
     cov = sparse_coverage(data)
     if not cov.points:
         return "lowpass", "no sparse points to count views with"
     views = f"a median of {cov.median_views:g} training views in {cov.median_passes:g} passes a seabed point"
-    if cov.median_passes >= LIKELIHOOD_PASSES:
-        return "likelihood", f"{views}: enough for the gain likelihood (>= {LIKELIHOOD_PASSES} passes)"
-    return "lowpass", f"{views}: the low-pass estimate (the gain likelihood needs >= {LIKELIHOOD_PASSES} passes)"
+    if cov.median_passes >= PASSES_MIN:
+        return "passes", f"{views}: targets from the passes that saw each point (>= {PASSES_MIN} passes)"
+    return "lowpass", f"{views}: the low-pass estimate (the passes need >= {PASSES_MIN})"
 
 
 def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
-    """Whether the RecGS model beats the plain one on the held-out photos as captured (scores of
-    ``RecGS._scores``), and why. Where a gain likelihood was fitted, by its data term (the model
+    """Whether the RecGS model beats the plain one on the held-out views (scores of
+    ``RecGS._scores``), and why. Where the passes estimator made references for the held-out
+    frames (caustic-free, gathered from the training frames alone), by PSNR against them; where
+    a gain likelihood was fitted, by its data term (the model
     under which the held-out photos, caustics and all, are more likely), with PSNR against the
     captured photos not falling more than :data:`HARM_DB`; otherwise by that PSNR, where a
     difference within :data:`TIE_DB` is a tie that goes to the caustic-free model.
     benchmarks/bench_caustics.py reports how often this agrees with ground truth."""
+    if "psnr_reference" in recgs and "psnr_reference" in plain:
+        dr = recgs["psnr_reference"] - plain["psnr_reference"]
+        return dr > -TIE_DB, f"PSNR against the held-out frames' references from the passes {dr:+.2f} dB"
     if "psnr_captured" not in recgs or "psnr_captured" not in plain:
         return True, "no held-out views to judge by"
     dp = recgs["psnr_captured"] - plain["psnr_captured"]
@@ -105,6 +112,18 @@ def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
         return ok, f"likelihood {recgs['nll']:.4f} against {plain['nll']:.4f}, PSNR {dp:+.2f} dB"
     return dp > -TIE_DB, f"PSNR against the held-out photos {dp:+.2f} dB"
 
+
+#: The share of a time limit the warm-up (plain 3DGS) takes at most, by estimator. The low-pass
+#: estimate measures C against the model, which must be mature first (a shorter warm-up read the
+#: model's own error as caustics, benchmarks/RESULTS.md); the passes' targets do not depend on
+#: the model, so their warm-up only makes the plain model the end-of-run choice compares with,
+#: and the caustic-free targets get the rest (0.2 scored 0.5 dB above 0.5 on a dive survey).
+WARMUP_SHARE = {"passes": 0.2}
+
+#: passes: the moving light's standard deviation between frames (log units, benchmarks/RESULTS.md:
+#: 0.006 on a survey without caustics, from misregistered texture; 0.37 under light networks)
+#: below which there are no caustics to remove.
+LIGHT_FLOOR = 0.03
 
 #: How far the caustic-free model may fall below the plain one in PSNR against the held-out
 #: photos as captured and still be kept when the likelihood prefers it: a held-out photo's own
@@ -128,7 +147,6 @@ class RecGS(Method):
             ccfg = dataclasses.replace(ccfg, estimator=chosen)
         super().__init__(trainer, ccfg)
         self.k: Optional[int] = ccfg.caustic_k or None
-        self.eval_k = ccfg.caustic_k or fft_filter.DEFAULT_K
         self.targets = TrimmedTargets(ccfg.robust_k, reference=self._reference)
         trainer.set_objective(self.targets)
         self.gain: Optional[list] = None    # the colour gain applied at the end (gain_restore)
@@ -150,6 +168,14 @@ class RecGS(Method):
         self.candidates: Optional[dict] = None
         #: the step at which C first settled (``recurrence_tol``), if it did
         self.converged_at: Optional[int] = None
+        #: passes: the passes' part of every training view's target (``_make_pass_estimates``)
+        #: and what it drew on
+        self.geometry: Optional[dict] = None
+        self.pass_info: Optional[dict] = None
+        #: passes: each held-out frame's caustic-free reference, gathered from the training
+        #: frames (what held-out renders are scored against once C is in use, and what the
+        #: end-of-run choice judges by)
+        self.references: Optional[dict[int, torch.Tensor]] = None
 
     @property
     def stage(self) -> str:
@@ -161,17 +187,25 @@ class RecGS(Method):
         self.trainer.label = value
 
     # --- estimates -------------------------------------------------------------------------
-    def _reference(self, image: torch.Tensor, render: torch.Tensor) -> torch.Tensor:
+    def _reference(self, index: int, image: torch.Tensor, render: torch.Tensor) -> torch.Tensor:
         """What a held-out render is scored against for the trainer's decisions: the photo
         during the warm-up (it is plain 3DGS and decides as plain 3DGS does: scored against
         compensated photos, growth went on to 3x the Gaussians, half of them carrying no
         view), the photo with its caustics compensated once C is in use."""
         if self.stage == "warmup":
             return image
+        if self.references is not None and index in self.references:
+            return self.references[index].float()
         if self._likelihood:   # its own light map follows the render too closely to score it
-            return compensate_caustics(image, render, self.eval_k, "additive", False)
-        return self._decaustic(image, self._estimate(image, render, self.eval_k))
+            return compensate_caustics(image, render, self._eval_k, "additive", False)
+        return self._decaustic(image, self._estimate(image, render, self._eval_k))
 
+
+    @property
+    def _eval_k(self) -> int:
+        """The filter held-out views are compensated with: the training views' (the paper's
+        9 until it is chosen)."""
+        return self.k or fft_filter.DEFAULT_K
 
     @property
     def _lightfield(self) -> bool:
@@ -180,6 +214,10 @@ class RecGS(Method):
     @property
     def _likelihood(self) -> bool:
         return self.ccfg.estimator == "likelihood"
+
+    @property
+    def _passes(self) -> bool:
+        return self.ccfg.estimator == "passes"
 
     def _sigma(self, image: torch.Tensor) -> float:
         """The light's blur in pixels at this image's width (``light_sigma`` is given at 320 px)."""
@@ -235,24 +273,28 @@ class RecGS(Method):
             self.targets.put(i, self._decaustic(self.data.view(i, 1)[1], m.float()))
 
     # --- the recurrence --------------------------------------------------------------------
+    def _estimates(self, ids: list[int]) -> dict[int, torch.Tensor]:
+        """Every training view's new estimate of C (the estimator's maps) against the model now."""
+        if self.ccfg.estimator == "consensus":
+            return self._consensus_maps()
+        renders = {i: self.trainer.render_view(i) for i in ids}
+        if self.k is None:
+            self.k = fft_filter.choose_k([self.data.view(i, 1)[1] - renders[i] for i in ids])
+        if self._lightfield:
+            return self._light_field_maps(renders)
+        if self._passes:
+            return self._pass_maps(renders)
+        if self._likelihood:
+            return self._likelihood_maps(ids, renders)
+        return {i: self._estimate(self.data.view(i, 1)[1], renders[i], self.k) for i in ids}
+
     @torch.no_grad()
     def recur(self) -> dict:
         """One re-estimation of C for every training view; updates the targets."""
         tr = self.trainer
         ids = self._fit_views() if self._likelihood else self.data.train_ids
         previous_gain = self.gain_model
-        if self.ccfg.estimator == "consensus":
-            new = self._consensus_maps()
-        else:
-            renders = {i: tr.render_view(i) for i in ids}
-            if self.k is None:
-                self.k = fft_filter.choose_k([self.data.view(i, 1)[1] - renders[i] for i in ids])
-            if self._lightfield:
-                new = self._light_field_maps(renders)
-            elif self._likelihood:
-                new = self._likelihood_maps(ids, renders)
-            else:
-                new = {i: self._estimate(self.data.view(i, 1)[1], renders[i], self.k) for i in ids}
+        new = self._estimates(ids)
         if self._likelihood:   # the light maps follow the model's texture too; the gains' distribution settles
             change = self.gain_model.distance(previous_gain) if previous_gain is not None else 1.0
         else:
@@ -264,6 +306,8 @@ class RecGS(Method):
         level = fft_filter.mean_abs([photos[i] - self._decaustic(photos[i], self.maps[i].float()) for i in ids])
         entry = {"recurrence": self.recurrence, "iteration": tr.step, "elapsed": round(tr.elapsed, 2),
                  "c_change": change, "mean_abs_c": level, "k": self.k}
+        if self._passes:
+            entry["light_std"] = self.geometry["light"]["light_std"]
         self.rec_history.append(entry)
         return entry
 
@@ -281,6 +325,56 @@ class RecGS(Method):
         photos = [self.data.view(i, 1)[1] for i in ids]
         self.light_gain = lightfield.linear_gain((p, lightfield.remove_light(p, new[i])) for p, i in zip(photos, ids))
         return new
+
+    def _make_pass_estimates(self) -> dict:
+        """The passes' part of the targets (``passes.py``), which does not depend on the model:
+        every training and held-out frame with the survey's geometry (sparse points refined by
+        a plane sweep; the model's depth where there are no points), the light's statistics,
+        each training frame's estimate and weight (kept as float16), and the held-out frames'
+        references gathered from the training frames alone."""
+        t = time.perf_counter()
+        tr, data = self.trainer, self.data
+        ids = sorted(data.train_ids + data.test_ids)
+        times = read_frame_times(data.scene.scene_dir) or {}
+        views = []
+        for i in ids:
+            cam, photo = data.view(i, 1)
+            viewmat, K = view_tensors(cam, tr.device)
+            out = tr.render_output(i)
+            views.append(passes.PassView(photo, out.depth / out.alpha.clamp_min(1e-6), out.alpha > 0.5,
+                                         viewmat, K, times.get(cam.name)))
+        pts = torch.as_tensor(data.scene.points, dtype=torch.float32, device=tr.device)
+        overlap = passes.survey_geometry(views, pts)
+        pos = {i: n for n, i in enumerate(ids)}
+        train, test = [pos[i] for i in data.train_ids], [pos[i] for i in data.test_ids]
+        light = passes.light_statistics(views, overlap, train)
+        settings = passes.PassSettings(**({"pass_seconds": light["correlation_s"]}
+                                          if light.get("correlation_s") is not None else {}))
+        est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train)
+        if test:
+            refs, _ = passes.pass_targets(views, settings, ids=test, overlap=overlap, sources=train, gains=info["gains"])
+            self.references = {i: r.half() for i, r in zip(data.test_ids, refs)}
+            tr.best_by = "psnr"   # the references do not follow the model
+        seconds = round(time.perf_counter() - t, 2)
+        self.pass_info = {"median_passes": float(np.median(info["passes"])), "share": round(float(np.mean(info["share"])), 4),
+                          "pass_seconds": settings.pass_seconds, "seconds": seconds,
+                          **{k: v for k, v in light.items() if k != "correlation_s"}}
+        return {"estimates": {i: e.half() for i, e in zip(data.train_ids, est)},
+                "weights": {i: w.half() for i, w in zip(data.train_ids, wts)}, "light": light}
+
+    def _pass_maps(self, renders: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
+        """C = I - (the target from the passes that saw each pixel; RecGS's low-pass target
+        where too few did). The first call makes the passes' part; later rounds renew the
+        low-pass part only."""
+        if self.geometry is None:
+            self.geometry = self._make_pass_estimates()
+        g = self.geometry
+        out = {}
+        for i in self.data.train_ids:
+            photo = self.data.view(i, 1)[1]
+            low = remove_caustics(photo, estimate_caustics(photo, renders[i], self.k, "additive", self.ccfg.caustic_dc))
+            out[i] = photo - passes.blend(g["estimates"][i].float(), g["weights"][i].float(), low)
+        return out
 
     def _fit_views(self) -> list[int]:
         """likelihood: the training views a refit renders: all of a small survey, an evenly
@@ -339,7 +433,10 @@ class RecGS(Method):
         entry = self.recur()
         prev = self.rec_history[-2] if len(self.rec_history) >= 2 else None
         done = None
-        if entry["mean_abs_c"] < c.caustic_floor:
+        if entry.get("light_std") is not None and entry["light_std"] < LIGHT_FLOOR:
+            self._drop(f"no moving light between the frames (its standard deviation {entry['light_std']:.3f} "
+                       f"log units, below {LIGHT_FLOOR})", restore=False)
+        elif entry["mean_abs_c"] < c.caustic_floor:
             self._drop(f"no caustics to remove (mean |C| {entry['mean_abs_c']:.4f})", restore=False)
         elif entry["c_change"] < c.recurrence_tol:
             if self.converged_at is None:
@@ -381,9 +478,11 @@ class RecGS(Method):
         return tr.step > tr.cfg.densify_from and tr.growth_over()
 
     def _warmup_time_up(self) -> bool:
-        """With a time limit, the warm-up gets at most ``warmup_share`` of it."""
+        """With a time limit, the warm-up gets at most ``warmup_share`` of it (by default the
+        estimator's :data:`WARMUP_SHARE`)."""
         c, limit = self.ccfg, self.trainer.cfg.max_minutes
-        return limit is not None and self.trainer.schedule_elapsed() >= c.warmup_share * 60 * limit
+        share = c.warmup_share if c.warmup_share is not None else WARMUP_SHARE.get(c.estimator, 0.5)
+        return limit is not None and self.trainer.schedule_elapsed() >= share * 60 * limit
 
     # --- do no harm: the held-out check of the recurrences ------------------------------------
     def _harm(self, score: Optional[float]) -> Optional[str]:
@@ -435,6 +534,8 @@ class RecGS(Method):
         if self.trainer.objective is not self.targets:
             self.trainer.set_objective(self.targets)
         self._set_maps({})  # targets = the captured images
+        self.references = None   # held-out views are scored against their photos again
+        self.trainer.best_by, self.trainer.best = "psnr_captured", None
         self.misses = 0
         self.drop_reason = why
         self._plain_loss()
@@ -456,6 +557,7 @@ class RecGS(Method):
         self.next_due = self.trainer.step
         self.trainer.restart_plateau()
         self._snapshot(self.trainer.heldout_psnr())  # the plain model is the one not to fall below
+        self.trainer.best = None   # from here the best model of the recurrences (``_decide``)
 
     # --- the loop --------------------------------------------------------------------------
     def run(self, on_progress: Optional[Callable[[Progress], None]] = None,
@@ -495,31 +597,38 @@ class RecGS(Method):
         started from (:meth:`prefers_recgs`); otherwise the plain model comes back. Both
         candidates' scores, and the choice, go into the run's summary."""
         tr = self.trainer
+        if tr.restore_best() is None:
+            tr.best_step = None
         self.candidates = {"recgs": self._scores(tr.snapshot()), "plain": self._scores(self.plain)}
         keep, why = prefers_recgs(self.candidates["recgs"], self.candidates["plain"])
         self.candidates["kept"], self.candidates["why"] = ("recgs" if keep else "plain"), why
         if not keep:
             tr.restore(self.plain)
             tr.best_step = self.plain.get("step")
-            self.drop_reason = f"the held-out photos do not show the caustic-free model better ({why})"
+            self.drop_reason = f"the held-out views do not show the caustic-free model better ({why})"
+        if self.maps and not self._likelihood:
+            # the exported caustic-free photos and maps come from the model kept
+            self._set_maps(self._estimates(self.data.train_ids))
 
     @torch.no_grad()
     def _scores(self, snap: dict) -> dict:
         """How a model (a ``snapshot()``) does on the held-out views: PSNR against the photos as
-        captured, the mean data term of the gain likelihood against them (lower is more likely;
-        where one was fitted) and PSNR against ground truth (where the survey has it, reported
-        only)."""
+        captured, against the references the passes made (where they did), the mean data term
+        of the gain likelihood against the photos (lower is more likely; where one was fitted)
+        and PSNR against ground truth (where the survey has it, reported only)."""
         tr = self.trainer
         ids = tr.heldout_ids()
         out: dict = {}
         if not ids:
             return out
         with tr.using(snap):
-            cap, nll, gt = [], [], []
+            cap, ref, nll, gt = [], [], [], []
             for i in ids:
                 rgb = tr.render_view(i).clamp(0, 1)
                 photo = self.data.view(i, 1)[1]
                 cap.append(psnr(rgb, photo))
+                if self.references is not None and i in self.references:
+                    ref.append(psnr(rgb, self.references[i].float()))
                 if self.gain_model is not None:
                     w = rgb.clamp(0.02, 1.0)
                     nll.append(float((w * self.gain_model(likelihood.log_ratio(photo, rgb))).mean() / w.mean()))
@@ -527,6 +636,8 @@ class RecGS(Method):
                 if g is not None:
                     gt.append(psnr(rgb, g))
         out["psnr_captured"] = round(sum(cap) / len(cap), 4)
+        if ref:
+            out["psnr_reference"] = round(sum(ref) / len(ref), 4)
         if nll:
             out["nll"] = round(sum(nll) / len(nll), 5)
         if gt:
@@ -559,7 +670,8 @@ class RecGS(Method):
         return {**super().summary(), "estimator": self.ccfg.estimator, "estimator_why": self.estimator_why,
                 "candidates": self.candidates, "caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,
                 "psnr_heldout_plain": (self.plain or {}).get("score"), "colour_gain": self.gain,
-                "light_gain": [round(float(x), 4) for x in self.light_gain] if self._lightfield else None}
+                "light_gain": [round(float(x), 4) for x in self.light_gain] if self._lightfield else None,
+                "passes": self.pass_info}
 
     # --- checkpoints -----------------------------------------------------------------------
     def state_dict(self) -> dict:

@@ -61,10 +61,10 @@ class FixedTargets(Objective):
     (half the memory of float32, a 2^-11 step at full scale: an eighth of an 8-bit grey
     level), so a survey of hundreds of views holds them beside its photos. :meth:`get` gives
     the target back as float32. Targets may change between training segments (the caustic
-    methods do; ``clear()`` returns to the photos). ``reference(image, render)``, optional:
-    what a held-out render is scored against."""
+    methods do; ``clear()`` returns to the photos). ``reference(index, image, render)``,
+    optional: what held-out view ``index``'s render is scored against."""
 
-    def __init__(self, reference: Optional[Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = None):
+    def __init__(self, reference: Optional[Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor]] = None):
         self.images: dict[int, torch.Tensor] = {}
         self.weights: dict[int, torch.Tensor] = {}
         self._reference = reference
@@ -82,7 +82,7 @@ class FixedTargets(Objective):
         return None if t is None else t.float()
 
     def reference(self, index, image, render):
-        return image if self._reference is None else self._reference(image, render)
+        return image if self._reference is None else self._reference(index, image, render)
 
     def target(self, index, image, render):
         h, w = image.shape[:2]
