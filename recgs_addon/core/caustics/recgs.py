@@ -172,6 +172,8 @@ class RecGS(Method):
         #: and what it drew on
         self.geometry: Optional[dict] = None
         self.pass_info: Optional[dict] = None
+        #: the run has ended: a view's caustic-free photo is made against the model kept
+        self.final = False
         #: passes: each held-out frame's caustic-free reference, gathered from the training
         #: frames (what held-out renders are scored against once C is in use, and what the
         #: end-of-run choice judges by)
@@ -260,6 +262,8 @@ class RecGS(Method):
                 return image
             return self._decaustic(image, self._estimate(image, self.trainer.render_view(index), 0))
         cmap = self.maps.get(index)
+        if cmap is not None and self.final and self._by_view:   # against the model kept
+            cmap = self._view_estimate(index, self.trainer.render_view(index))
         return image if cmap is None else self._decaustic(image, cmap.float())
 
     def _set_maps(self, maps: dict[int, torch.Tensor]) -> None:
@@ -282,11 +286,27 @@ class RecGS(Method):
             self.k = fft_filter.choose_k([self.data.view(i, 1)[1] - renders[i] for i in ids])
         if self._lightfield:
             return self._light_field_maps(renders)
-        if self._passes:
-            return self._pass_maps(renders)
         if self._likelihood:
             return self._likelihood_maps(ids, renders)
-        return {i: self._estimate(self.data.view(i, 1)[1], renders[i], self.k) for i in ids}
+        if self._passes and self.geometry is None:
+            self.geometry = self._make_pass_estimates()
+        return {i: self._view_estimate(i, renders[i]) for i in ids}
+
+    @property
+    def _by_view(self) -> bool:
+        """The estimator makes a view's C from that view's photo and render alone."""
+        return self.ccfg.estimator in ("lowpass", "passes")
+
+    def _view_estimate(self, index: int, render: torch.Tensor) -> torch.Tensor:
+        """C of training view ``index`` against ``render`` (``_by_view`` estimators): the
+        low-pass estimate, or (passes) the photo less its target: the passes' estimate where
+        enough passes saw a pixel, the low-pass target elsewhere."""
+        photo = self.data.view(index, 1)[1]
+        if not self._passes:
+            return self._estimate(photo, render, self.k)
+        g = self.geometry
+        low = remove_caustics(photo, estimate_caustics(photo, render, self.k, "additive", self.ccfg.caustic_dc))
+        return photo - passes.blend(g["estimates"][index].float(), g["weights"][index].float(), low)
 
     @torch.no_grad()
     def recur(self) -> dict:
@@ -361,20 +381,6 @@ class RecGS(Method):
                           **{k: v for k, v in light.items() if k != "correlation_s"}}
         return {"estimates": {i: e.half() for i, e in zip(data.train_ids, est)},
                 "weights": {i: w.half() for i, w in zip(data.train_ids, wts)}, "light": light}
-
-    def _pass_maps(self, renders: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
-        """C = I - (the target from the passes that saw each pixel; RecGS's low-pass target
-        where too few did). The first call makes the passes' part; later rounds renew the
-        low-pass part only."""
-        if self.geometry is None:
-            self.geometry = self._make_pass_estimates()
-        g = self.geometry
-        out = {}
-        for i in self.data.train_ids:
-            photo = self.data.view(i, 1)[1]
-            low = remove_caustics(photo, estimate_caustics(photo, renders[i], self.k, "additive", self.ccfg.caustic_dc))
-            out[i] = photo - passes.blend(g["estimates"][i].float(), g["weights"][i].float(), low)
-        return out
 
     def _fit_views(self) -> list[int]:
         """likelihood: the training views a refit renders: all of a small survey, an evenly
@@ -606,8 +612,10 @@ class RecGS(Method):
             tr.restore(self.plain)
             tr.best_step = self.plain.get("step")
             self.drop_reason = f"the held-out views do not show the caustic-free model better ({why})"
-        if self.maps and not self._likelihood:
-            # the exported caustic-free photos and maps come from the model kept
+        # the exported caustic-free photos and maps come from the model kept: view by view as
+        # they are written (one render each), or all at once for the estimators that need that
+        self.final = True
+        if self.maps and not self._likelihood and not self._by_view:
             self._set_maps(self._estimates(self.data.train_ids))
 
     @torch.no_grad()
