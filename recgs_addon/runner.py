@@ -265,6 +265,10 @@ def run_train(args) -> int:
         trainer.data.load_all(trainer.level(), on_image=_reading_progress(time.perf_counter()))
         plan = _plan(args, method, trainer)
         trainer.start_clock(t_command)
+        # what _finish renders: held-out views (outputs, final scores), every training view
+        # (views per Gaussian), every view again at most 400 px (coverage)
+        n_train, n_test = len(trainer.data.train_ids), len(trainer.data.test_ids)
+        trainer.finishing_renders = 2 * n_test + 2 * n_train + n_test + method.finishing_renders()
     except RecGSError as exc:
         _emit("error", message=str(exc))
         print(f"error: {exc}", file=sys.stderr)

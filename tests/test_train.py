@@ -841,3 +841,17 @@ def test_resumed_clock_goes_on_from_the_saved_time(small_scene):
     again.train_until()
     assert again.elapsed > saved
     assert again.elapsed < saved + 60          # counted from the resume, not from the first run's start
+
+
+def test_time_limit_keeps_room_for_the_finishing(small_scene):
+    """The renders a job makes after training (set by the job) come out of the time limit, at
+    the latest measured render time and at most a quarter of the limit."""
+    tr = make_trainer(small_scene, tiny_cfg(iterations=10 ** 6, max_minutes=0.05))   # 3 s
+    assert tr.finishing_reserve() == 0.0
+    tr.evaluate()                          # renders the held-out views: a render time
+    tr.finishing_renders = 4
+    assert 0.0 < tr.finishing_reserve() < 1.0
+    tr.finishing_renders = 10 ** 6
+    assert tr.finishing_reserve() == pytest.approx(0.75)
+    assert tr.train_until() == "time limit"
+    assert 2.25 <= tr.elapsed < 3.0

@@ -38,6 +38,11 @@ class Method:
         methods that make none."""
         return None
 
+    def finishing_renders(self) -> int:
+        """Renders of the model the method makes after training (its end-of-run choice, its
+        caustic-free photos), for the time limit's reserve (``Trainer.finishing_reserve``)."""
+        return 0
+
     def state_bytes(self) -> int:
         """Memory the method's per-view state (caustic maps, targets) takes at its largest."""
         return 0

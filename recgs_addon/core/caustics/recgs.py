@@ -667,6 +667,11 @@ class RecGS(Method):
             p.extra.update(recurrence=self.recurrence, c_change=self.rec_history[-1]["c_change"])
         return p
 
+    def finishing_renders(self) -> int:
+        """The end-of-run choice scores both candidates (and the best of the recurrences) on
+        the held-out views; the caustic-free photos render every training view once more."""
+        return 3 * len(self.data.test_ids) + len(self.data.train_ids)
+
     def state_bytes(self) -> int:
         """The maps and the targets, float16 (H, W, 3) each, of every training view (likelihood:
         a light map, float16 (H, W), of each view a refit renders)."""

@@ -99,6 +99,10 @@ class Trainer:
         #: :meth:`start_clock` on, training segments and the work between them alike
         self.elapsed = 0.0
         self._clock: Optional[float] = None   # perf_counter() reading at which elapsed was 0
+        #: renders a run still makes after training (its outputs, scores and report), set by
+        #: the job: the time limit leaves room for them (:meth:`finishing_reserve`)
+        self.finishing_renders = 0
+        self._render_s: Optional[float] = None   # seconds a full-resolution render took, lately
         self.order: list[int] = []
         self.history: list[dict] = []
         self.budget = cfg.budget  # may be frozen by "auto"
@@ -433,13 +437,17 @@ class Trainer:
     def render_output(self, index: int):
         """The whole :class:`~..render.rasterizer.RenderOutput` (rgb, alpha, depth, ...) of
         camera ``index`` at the training resolution."""
+        t = time.perf_counter()
         cam, _ = self.data.view(index, 1)
         viewmat, K = view_tensors(cam, self.device)
         p = self.params
-        return render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
+        out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
                       viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
                       background=torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device),
                       compiled=self.compiler.compiled())
+        dt = time.perf_counter() - t
+        self._render_s = dt if self._render_s is None else 0.8 * self._render_s + 0.2 * dt
+        return out
 
     def render_view(self, index: int) -> torch.Tensor:
         """(H, W, 3) render of camera ``index`` at the training resolution (not clamped)."""
@@ -597,7 +605,7 @@ class Trainer:
         while True:
             if self.step >= c.iterations:
                 self.done_reason = self.done_reason or "iteration limit"
-            if c.max_minutes is not None and self.elapsed >= 60 * c.max_minutes:
+            if c.max_minutes is not None and self.elapsed >= 60 * c.max_minutes - self.finishing_reserve():
                 self.done_reason = self.done_reason or "time limit"
             if self.done_reason:
                 return self.done_reason
@@ -630,6 +638,14 @@ class Trainer:
             if on_checkpoint and time.perf_counter() - self._last_checkpoint >= checkpoint_every_s:
                 on_checkpoint(self)
                 self._last_checkpoint = time.perf_counter()
+
+    def finishing_reserve(self) -> float:
+        """Seconds the time limit keeps for what follows training: ``finishing_renders`` at the
+        latest render time measured (a held-out evaluation measures it), at most a quarter of
+        the limit. The whole job then ends near its limit, finishing included."""
+        if not self.finishing_renders or self._render_s is None or self.cfg.max_minutes is None:
+            return 0.0
+        return min(self.finishing_renders * self._render_s, 15.0 * self.cfg.max_minutes)
 
     def start_clock(self, origin: Optional[float] = None) -> None:
         """Count the run's time from ``origin`` (a ``time.perf_counter()`` reading, default now;
