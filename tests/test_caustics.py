@@ -735,3 +735,20 @@ def test_end_of_run_choice_between_the_caustic_free_and_the_plain_model():
     assert not prefers_recgs({"psnr_captured": 20.0 - 2 * HARM_DB, "nll": 0.7}, lik)[0]
     assert not prefers_recgs({"psnr_captured": 20.5, "nll": 0.9}, lik)[0]
     assert prefers_recgs({}, {})[0]
+
+
+def test_passes_run_resumed_after_its_last_round_writes_its_caustic_free_photos(caustic_scene):
+    """The passes' part of the targets is not checkpointed (it is made again from the survey):
+    a run resumed with no round left still ends with the model kept and its caustic-free photos."""
+    kw = dict(estimator="passes", iterations=500, warmup=300, recurrence_steps=100, max_recurrences=40,
+              recurrence_tol=0.0)
+    a = make(caustic_scene, **kw)
+    assert a.run(should_stop=lambda: a.trainer.step == 499) == "stopped"
+    assert a.stage == "recurrence" and a.maps
+    b = make(caustic_scene, **kw)
+    b.load_state_dict(a.state_dict())
+    assert b.geometry is None
+    b.run()
+    assert b.candidates is not None and b.final
+    for i in b.data.train_ids:
+        assert torch.isfinite(b.decaustic_image(i)).all()

@@ -43,6 +43,7 @@ come from ``TrainData.gt_view`` and are only reported. Settings: ``config.py``.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from typing import Callable, Optional
@@ -288,8 +289,6 @@ class RecGS(Method):
             return self._light_field_maps(renders)
         if self._likelihood:
             return self._likelihood_maps(ids, renders)
-        if self._passes and self.geometry is None:
-            self.geometry = self._make_pass_estimates()
         return {i: self._view_estimate(i, renders[i]) for i in ids}
 
     @property
@@ -304,6 +303,8 @@ class RecGS(Method):
         photo = self.data.view(index, 1)[1]
         if not self._passes:
             return self._estimate(photo, render, self.k)
+        if self.geometry is None:   # the first round, or the first use after a resume (not checkpointed)
+            self.geometry = self._make_pass_estimates()
         g = self.geometry
         low = remove_caustics(photo, estimate_caustics(photo, render, self.k, "additive", self.ccfg.caustic_dc))
         return photo - passes.blend(g["estimates"][index].float(), g["weights"][index].float(), low)
@@ -378,7 +379,9 @@ class RecGS(Method):
         seconds = round(time.perf_counter() - t, 2)
         self.pass_info = {"median_passes": float(np.median(info["passes"])), "share": round(float(np.mean(info["share"])), 4),
                           "pass_seconds": settings.pass_seconds, "seconds": seconds,
-                          **{k: v for k, v in light.items() if k != "correlation_s"}}
+                          **{k: v for k, v in light.items() if k != "correlation_s"},
+                          "share_per_frame": {data.scene.cameras[i].name: round(float(x), 3)
+                                              for i, x in zip(data.train_ids, info["share"])}}
         return {"estimates": {i: e.half() for i, e in zip(data.train_ids, est)},
                 "weights": {i: w.half() for i, w in zip(data.train_ids, wts)}, "light": light}
 
@@ -491,14 +494,23 @@ class RecGS(Method):
         return limit is not None and self.trainer.schedule_elapsed() >= share * 60 * limit
 
     # --- do no harm: the held-out check of the recurrences ------------------------------------
-    def _harm(self, score: Optional[float]) -> Optional[str]:
+    def _harm(self, score: Optional[float], plain: Optional[float]) -> Optional[str]:
         """Why ``score`` counts as hurting held-out views (more than ``harm_tol`` dB below the
-        plain model), or None."""
-        if score is None or self.plain is None or self.plain["score"] is None:
+        plain model's ``plain``), or None."""
+        if score is None or plain is None:
             return None
-        if score >= self.plain["score"] - self.ccfg.harm_tol:
+        if score >= plain - self.ccfg.harm_tol:
             return None
-        return f"caustic estimate hurt held-out views ({score:.2f} dB against {self.plain['score']:.2f} dB)"
+        return f"caustic estimate hurt held-out views ({score:.2f} dB against {plain:.2f} dB)"
+
+    @torch.no_grad()
+    def _reference_psnr(self, snap: Optional[dict] = None) -> float:
+        """Mean PSNR of the held-out renders (of ``snap``'s model, default the trainer's) against
+        the passes' references."""
+        tr = self.trainer
+        ids = [i for i in tr.heldout_ids() if i in self.references]
+        with tr.using(snap) if snap is not None else contextlib.nullcontext():
+            return float(np.mean([psnr(tr.render_view(i).clamp(0, 1), self.references[i].float()) for i in ids]))
 
     def _snapshot(self, score: Optional[float]) -> None:
         """Remember the plain model (before any C) and its held-out score: the model now, or the
@@ -518,10 +530,16 @@ class RecGS(Method):
         model the recurrences started from, C is taking real scene content (on a survey without
         caustics it only absorbs model error): go back to the plain model, drop C, and let it
         train on as plain 3DGS until the held-out plateau or a limit. Returns whether the
-        recurrences are over."""
-        score = self.trainer.heldout_psnr()
+        recurrences are over. With the passes' references both are scored against them: the
+        held-out photos' own caustics would count the caustic-free model's gain as harm."""
+        if self.references is not None and self.plain is not None:
+            if "reference_score" not in self.plain:
+                self.plain["reference_score"] = self._reference_psnr(self.plain)
+            score, plain = self._reference_psnr(), self.plain["reference_score"]
+        else:
+            score, plain = self.trainer.heldout_psnr(), (self.plain or {}).get("score")
         self.rec_history[-1]["psnr_heldout"] = score
-        harm = self._harm(score)
+        harm = self._harm(score, plain)
         self.misses = self.misses + 1 if harm else 0
         if not harm or self.misses < self.ccfg.recurrence_patience:
             return False

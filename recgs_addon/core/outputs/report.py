@@ -19,6 +19,14 @@ def _f(v, digits=2) -> str:
     return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
 
+def _passes_row(p: dict) -> str:
+    """What the pass estimator cost and drew on, in one table cell."""
+    return (f"{p.get('seconds')} s (geometry, gathers and references, once); {100 * p.get('share', 0):.0f} % of "
+            f"the training pixels from the passes (median {p.get('median_passes'):g} passes a pixel), the rest "
+            f"low-pass; moving light {p.get('light_std')} log units, frames under {p.get('pass_seconds')} s "
+            "apart one pass")
+
+
 def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -> Path:
     """``OUT/report.md`` with PNGs under ``OUT/report/``: held-out PSNR against time, the change
     of C per recurrence, triptychs (captured / caustic-free / ground truth) and caustic maps."""
@@ -38,6 +46,8 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
             ("caustic estimator", metrics.get("estimator") and
              f"{metrics['estimator']} ({metrics.get('estimator_why', '')})"),
             ("caustic filter size k", metrics.get("caustic_k")),
+            ("targets from the passes", metrics.get("passes") and _passes_row(metrics["passes"])),
+            ("seconds, job (command to report)", metrics.get("job_seconds")),
             ("caustic estimate dropped", metrics.get("caustics_dropped")),
             ("model kept at the end", metrics.get("candidates") and
              f"{metrics['candidates']['kept']} ({metrics['candidates']['why']})"),
