@@ -524,15 +524,12 @@ def refine_depth(i: int, views: Sequence[PassView], neighbours: Sequence[int], o
     return torch.where(vi.covered, depth, vi.surface.float())
 
 
-def survey_geometry(views: Sequence[PassView], points: Optional[torch.Tensor], refine: bool = True) -> np.ndarray:
+def prior_geometry(views: Sequence[PassView], points: Optional[torch.Tensor]) -> list[torch.Tensor]:
     """Set every frame's ``surface`` from the survey's sparse ``points`` (M, 3) where they are
-    dense enough (the model's own depth elsewhere, as the views bring it), refined by a plane
-    sweep (``refine``); returns the frames' overlap matrix. A model trained on photos with
-    moving light puts Gaussians in front of the seabed to paint each frame's light, so its
-    depth runs short (a median of 3 % on a dive survey, against 0.25 % from the points and
-    0.07 % refined: benchmarks/RESULTS.md)."""
-    model = [torch.where(v.covered, v.surface.float(), torch.full_like(v.surface.float(), float("nan")))
-             for v in views]
+    dense enough (the depth the views bring, the model's, elsewhere); returns the depths the
+    views brought (NaN where they covered nothing), for :func:`refine_geometry`."""
+    brought = [torch.where(v.covered, v.surface.float(), torch.full_like(v.surface.float(), float("nan")))
+               for v in views]
     if points is not None and len(points):
         for v in views:
             h, w = v.surface.shape
@@ -540,13 +537,32 @@ def survey_geometry(views: Sequence[PassView], points: Optional[torch.Tensor], r
             ok = torch.isfinite(d)
             v.surface = torch.where(ok, d, v.surface.float())
             v.covered = v.covered | ok
+    return brought
+
+
+def refine_geometry(views: Sequence[PassView], overlap: np.ndarray,
+                    alternatives: Optional[Sequence[torch.Tensor]] = None) -> None:
+    """Refine every frame's ``surface`` by the plane sweep (:func:`refine_depth`), with the
+    depths ``alternatives`` (the model's) as the other hypothesis."""
+    greys = [log_grey(v.photo) for v in views]
+    refined = [refine_depth(i, views, sweep_neighbours(i, views, overlap), greys=greys,
+                            alternative=None if alternatives is None else alternatives[i])
+               for i in range(len(views))]
+    for v, d in zip(views, refined):
+        v.surface = d
+
+
+def survey_geometry(views: Sequence[PassView], points: Optional[torch.Tensor], refine: bool = True) -> np.ndarray:
+    """The survey's geometry for the estimator: depth from the sparse ``points`` (M, 3)
+    (:func:`prior_geometry`), refined by the plane sweep with the views' own depth (the
+    model's) as the alternative (``refine``, :func:`refine_geometry`); returns the frames'
+    overlap matrix. A model trained on photos with moving light puts Gaussians in front of the
+    seabed to paint each frame's light, so its depth runs short (a median of 3 % on a dive
+    survey, against 0.25 % from the points and 0.09 % refined: benchmarks/RESULTS.md)."""
+    brought = prior_geometry(views, points)
     overlap = overlap_matrix(views)
     if refine:
-        greys = [log_grey(v.photo) for v in views]
-        refined = [refine_depth(i, views, sweep_neighbours(i, views, overlap), greys=greys, alternative=model[i])
-                   for i in range(len(views))]
-        for v, d in zip(views, refined):
-            v.surface = d
+        refine_geometry(views, overlap, brought)
     return overlap
 
 

@@ -306,6 +306,8 @@ class RecGS(Method):
         if self.geometry is None:   # the first round, or the first use after a resume (not checkpointed)
             self.geometry = self._make_pass_estimates()
         g = self.geometry
+        if g["estimates"] is None:   # no moving light: the round that finds it drops C
+            return self._estimate(photo, render, self.k)
         low = remove_caustics(photo, estimate_caustics(photo, render, self.k, "additive", self.ccfg.caustic_dc))
         return photo - passes.blend(g["estimates"][index].float(), g["weights"][index].float(), low)
 
@@ -365,10 +367,18 @@ class RecGS(Method):
             views.append(passes.PassView(photo, out.depth / out.alpha.clamp_min(1e-6), out.alpha > 0.5,
                                          viewmat, K, times.get(cam.name)))
         pts = torch.as_tensor(data.scene.points, dtype=torch.float32, device=tr.device)
-        overlap = passes.survey_geometry(views, pts)
+        brought = passes.prior_geometry(views, pts)
+        overlap = passes.overlap_matrix(views)
         pos = {i: n for n, i in enumerate(ids)}
         train, test = [pos[i] for i in data.train_ids], [pos[i] for i in data.test_ids]
+        # the light first (a few seconds): without moving light C is dropped, so the plane
+        # sweep and the gathers (most of the time) are not made
         light = passes.light_statistics(views, overlap, train)
+        if light["light_std"] is not None and light["light_std"] < LIGHT_FLOOR:
+            self.pass_info = {"seconds": round(time.perf_counter() - t, 2),
+                              **{k: v for k, v in light.items() if k != "correlation_s"}}
+            return {"estimates": None, "light": light}
+        passes.refine_geometry(views, overlap, brought)
         settings = passes.PassSettings(**({"pass_seconds": light["correlation_s"]}
                                           if light.get("correlation_s") is not None else {}))
         est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train)

@@ -21,6 +21,8 @@ def _f(v, digits=2) -> str:
 
 def _passes_row(p: dict) -> str:
     """What the pass estimator cost and drew on, in one table cell."""
+    if p.get("share") is None:
+        return f"none made: moving light of {p.get('light_std')} log units measured between frames ({p.get('seconds')} s)"
     return (f"{p.get('seconds')} s (geometry, gathers and references, once); {100 * p.get('share', 0):.0f} % of "
             f"the training pixels from the passes (median {p.get('median_passes'):g} passes a pixel), the rest "
             f"low-pass; moving light {p.get('light_std')} log units, frames under {p.get('pass_seconds')} s "
