@@ -268,7 +268,7 @@ def run_train(args) -> int:
         # what _finish renders: held-out views (outputs, final scores), every training view
         # (views per Gaussian), every view again at most 400 px (coverage)
         n_train, n_test = len(trainer.data.train_ids), len(trainer.data.test_ids)
-        trainer.finishing_renders = 2 * n_test + 2 * n_train + n_test + method.finishing_renders()
+        trainer.finishing_renders = lambda: 2 * n_test + 2 * n_train + n_test + method.finishing_renders()
     except RecGSError as exc:
         _emit("error", message=str(exc))
         print(f"error: {exc}", file=sys.stderr)

@@ -217,6 +217,7 @@ def test_passes_estimator_drops_c_without_moving_light(clean_scene, monkeypatch)
     m.run()
     assert m.dropped and "no moving light" in m.drop_reason, m.drop_reason
     assert m.summary()["passes"]["light_std"] < 0.1
+    assert m.finishing_renders() == 0   # a plain run's finishing: no end-of-run choice, no caustic-free photos
 
 
 def test_recurrence_converges_stops_and_removes_the_caustics(caustic_scene):

@@ -697,7 +697,10 @@ class RecGS(Method):
 
     def finishing_renders(self) -> int:
         """The end-of-run choice scores both candidates (and the best of the recurrences) on
-        the held-out views; the caustic-free photos render every training view once more."""
+        the held-out views; the caustic-free photos render every training view once more.
+        Nothing once C is dropped: the run ends as plain 3DGS."""
+        if self.dropped:
+            return 0
         return 3 * len(self.data.test_ids) + len(self.data.train_ids)
 
     def state_bytes(self) -> int:

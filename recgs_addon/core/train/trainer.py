@@ -99,9 +99,10 @@ class Trainer:
         #: :meth:`start_clock` on, training segments and the work between them alike
         self.elapsed = 0.0
         self._clock: Optional[float] = None   # perf_counter() reading at which elapsed was 0
-        #: renders a run still makes after training (its outputs, scores and report), set by
-        #: the job: the time limit leaves room for them (:meth:`finishing_reserve`)
-        self.finishing_renders = 0
+        #: how many renders the run will still make after training (its outputs, scores and
+        #: report), asked anew as the run goes (a method's needs change): set by the job; the
+        #: time limit leaves room for them (:meth:`finishing_reserve`)
+        self.finishing_renders: Callable[[], int] = lambda: 0
         self._render_s: Optional[float] = None   # seconds a full-resolution render took, lately
         self.order: list[int] = []
         self.history: list[dict] = []
@@ -640,12 +641,12 @@ class Trainer:
                 self._last_checkpoint = time.perf_counter()
 
     def finishing_reserve(self) -> float:
-        """Seconds the time limit keeps for what follows training: ``finishing_renders`` at the
+        """Seconds the time limit keeps for what follows training: ``finishing_renders()`` at the
         latest render time measured (a held-out evaluation measures it), at most a quarter of
         the limit. The whole job then ends near its limit, finishing included."""
-        if not self.finishing_renders or self._render_s is None or self.cfg.max_minutes is None:
+        if self._render_s is None or self.cfg.max_minutes is None:
             return 0.0
-        return min(self.finishing_renders * self._render_s, 15.0 * self.cfg.max_minutes)
+        return min(self.finishing_renders() * self._render_s, 15.0 * self.cfg.max_minutes)
 
     def start_clock(self, origin: Optional[float] = None) -> None:
         """Count the run's time from ``origin`` (a ``time.perf_counter()`` reading, default now;
