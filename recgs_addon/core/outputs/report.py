@@ -40,7 +40,10 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
     rows = [("stopped because", metrics.get("reason")), ("iterations", metrics.get("iterations")),
             ("seconds", metrics.get("seconds")), ("Gaussians", metrics.get("gaussians")),
             ("SH degree", metrics.get("sh_degree")),
-            ("held-out PSNR vs captured (dB)", _f(metrics.get("psnr_test"))),
+            ("held-out PSNR vs captured (dB)", _f(metrics.get("psnr_test_captured", metrics.get("psnr_test")))),
+            ("held-out PSNR vs the run's caustic-free references (dB)",
+             _f(metrics.get("psnr_test")) if metrics.get("psnr_test_captured") not in (None, metrics.get("psnr_test"))
+             else None),
             ("held-out PSNR vs ground truth (dB)", _f(metrics.get("psnr_test_gt"))),
             ("held-out SSIM vs ground truth", _f(metrics.get("ssim_test_gt"), 4)),
             ("training images as captured, PSNR vs ground truth (dB)", _f(metrics.get("psnr_captured_gt"))),
