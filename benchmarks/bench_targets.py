@@ -25,7 +25,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from recgs_addon.core.caustics import fft_filter, passes  # noqa: E402
+from recgs_addon.core.caustics import fft_filter, geometry, passes  # noqa: E402
 from recgs_addon.core.caustics.estimate import compensate_caustics  # noqa: E402
 from recgs_addon.core.io.colmap import load_scene  # noqa: E402
 from recgs_addon.core.io.frames import read_frame_times  # noqa: E402
@@ -90,12 +90,12 @@ def main(argv=None) -> int:
             d = torch.where(renders[i][2] > 0.5, renders[i][1], torch.full_like(renders[i][1], float("nan")))
         else:
             d = torch.full((cam.height, cam.width), float("nan"))
-        views.append(passes.PassView(photos[i], d, torch.isfinite(d) & (d > 0), vm, K, times.get(cam.name)))
+        views.append(geometry.PassView(photos[i], d, torch.isfinite(d) & (d > 0), vm, K, times.get(cam.name)))
     t = time.perf_counter()
     if args.depth == "points":
-        overlap = passes.survey_geometry(views, torch.tensor(np.asarray(scene.points), dtype=torch.float32))
+        overlap = geometry.survey_geometry(views, torch.tensor(np.asarray(scene.points), dtype=torch.float32))
     else:
-        overlap = passes.overlap_matrix(views)
+        overlap = geometry.overlap_matrix(views)
     t_geo = time.perf_counter() - t
     if true:
         err = np.concatenate([((v.surface - true[i]).abs() / true[i])[torch.isfinite(v.surface) & torch.isfinite(true[i])]

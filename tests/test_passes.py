@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from recgs_addon.core.caustics import geometry as G
 from recgs_addon.core.caustics import passes as P
 from recgs_addon.core.caustics.recgs import LIGHT_FLOOR
 from recgs_addon.core.caustics.lightfield import linear_to_srgb, srgb_to_linear
@@ -73,7 +74,7 @@ def survey(strength=0.9, rows=3, per_row=10, step=0.15, row_gap=0.6, dt=0.33, li
             xs = xs[::-1]
         for x in xs:
             photo, gt, depth, vm, K = frame(x, r * row_gap, t * light_speed, strength)
-            views.append(P.PassView(photo, depth, torch.ones(H, W, dtype=torch.bool), vm, K, t))
+            views.append(G.PassView(photo, depth, torch.ones(H, W, dtype=torch.bool), vm, K, t))
             gts.append(gt)
             t += dt
         t += 6.0   # the turn at the end of a row
@@ -82,7 +83,7 @@ def survey(strength=0.9, rows=3, per_row=10, step=0.15, row_gap=0.6, dt=0.33, li
 
 def test_choose_passes_groups_by_time_and_respects_sources_and_budget():
     views, _ = survey(rows=2, per_row=8)
-    ov = P.overlap_matrix(views)
+    ov = G.overlap_matrix(views)
     s = P.PassSettings(pass_seconds=1.0, per_pass=2, max_frames=6)
     groups = P.choose_passes(3, views, ov, s)
     assert groups[0][0] == 3
@@ -123,14 +124,14 @@ def test_too_few_passes_keep_the_fallback():
 
 def test_light_statistics_measure_the_light_and_its_time():
     views, _ = survey(strength=0.0, rows=2, per_row=10)
-    still = P.light_statistics(views, P.overlap_matrix(views))
+    still = P.light_statistics(views, G.overlap_matrix(views))
     assert still["light_std"] < LIGHT_FLOOR / 2   # resampled texture only
     views, _ = survey(strength=0.9, rows=2, per_row=10)
-    lit = P.light_statistics(views, P.overlap_matrix(views))
+    lit = P.light_statistics(views, G.overlap_matrix(views))
     assert lit["light_std"] > 0.15
     assert lit["correlation_s"] is not None and lit["correlation_s"] <= 1.0
     slow, _ = survey(strength=0.9, rows=2, per_row=10, light_speed=0.25)   # the light moves 4x slower
-    assert P.light_statistics(slow, P.overlap_matrix(slow))["correlation_s"] >= 2 * lit["correlation_s"]
+    assert P.light_statistics(slow, G.overlap_matrix(slow))["correlation_s"] >= 2 * lit["correlation_s"]
 
 
 def test_points_depth_interpolates_a_slanted_plane():
@@ -139,7 +140,7 @@ def test_points_depth_interpolates_a_slanted_plane():
     xy = rng.uniform(-1, 1, (600, 2))
     z = 0.1 * xy[:, 0]                     # seabed sloping along x
     pts = torch.tensor(np.c_[xy, z], dtype=torch.float32)
-    d = P.points_depth(vm, K, H, W, pts)
+    d = G.points_depth(vm, K, H, W, pts)
     v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
     # exact depth of the plane z = 0.1 x through each pixel's ray
     rx = (u - W / 2) / F
@@ -151,13 +152,13 @@ def test_points_depth_interpolates_a_slanted_plane():
 
 def test_refine_depth_aligns_texture():
     views, _ = survey(strength=0.9, rows=2, per_row=8)
-    ov = P.overlap_matrix(views)
+    ov = G.overlap_matrix(views)
     i = 4
     true = views[i].surface.clone()
     views[i].surface = true * 1.012          # a prior 1.2 % too far
-    nbrs = P.sweep_neighbours(i, views, ov)
+    nbrs = G.sweep_neighbours(i, views, ov)
     assert nbrs and i not in nbrs
-    refined = P.refine_depth(i, views, nbrs)
+    refined = G.refine_depth(i, views, nbrs)
     before = ((views[i].surface - true).abs() / true).median()
     after = ((refined - true).abs() / true).median()
     assert after < 0.6 * before, (before, after)
@@ -170,7 +171,7 @@ def test_survey_geometry_prefers_points_to_a_short_model_depth():
     pts = torch.tensor(np.c_[xy, np.zeros(len(xy))], dtype=torch.float32)
     for v in views:   # a model whose Gaussians float 4 % in front of the seabed
         v.surface = v.surface * 0.96
-    P.survey_geometry(views, pts)
+    G.survey_geometry(views, pts)
     err = torch.stack([((v.surface - ALTITUDE).abs() / ALTITUDE).median() for v in views])
     assert err.max() < 0.005, err
 

@@ -59,7 +59,7 @@ from . import fft_filter
 from .config import CausticConfig
 from .consensus import consensus_targets
 from .estimate import compensate_caustics, estimate_caustics, remove_caustics
-from . import lightfield, likelihood, passes
+from . import geometry, lightfield, likelihood, passes
 from .method import Method
 from .robust import TrimmedTargets, apply_gain, colour_gain, trim_weights
 
@@ -364,11 +364,11 @@ class RecGS(Method):
             cam, photo = data.view(i, 1)
             viewmat, K = view_tensors(cam, tr.device)
             out = tr.render_output(i)
-            views.append(passes.PassView(photo, out.depth / out.alpha.clamp_min(1e-6), out.alpha > 0.5,
+            views.append(geometry.PassView(photo, out.depth / out.alpha.clamp_min(1e-6), out.alpha > 0.5,
                                          viewmat, K, times.get(cam.name)))
         pts = torch.as_tensor(data.scene.points, dtype=torch.float32, device=tr.device)
-        brought = passes.prior_geometry(views, pts)
-        overlap = passes.overlap_matrix(views)
+        brought = geometry.prior_geometry(views, pts)
+        overlap = geometry.overlap_matrix(views)
         pos = {i: n for n, i in enumerate(ids)}
         train, test = [pos[i] for i in data.train_ids], [pos[i] for i in data.test_ids]
         # the light first (a few seconds): without moving light C is dropped, so the plane
@@ -378,7 +378,7 @@ class RecGS(Method):
             self.pass_info = {"seconds": round(time.perf_counter() - t, 2),
                               **{k: v for k, v in light.items() if k != "correlation_s"}}
             return {"estimates": None, "light": light}
-        passes.refine_geometry(views, overlap, brought)
+        geometry.refine_geometry(views, overlap, brought)
         settings = passes.PassSettings(**({"pass_seconds": light["correlation_s"]}
                                           if light.get("correlation_s") is not None else {}))
         est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train)
