@@ -179,17 +179,22 @@ def log_gradient_targets(views, k: int = 25, depth_tol: float = 0.03, min_alpha:
 def gain_by_count(photos: list[torch.Tensor], stats: list[torch.Tensor], counts: list[torch.Tensor],
                   min_pixels: int = 500) -> dict[int, torch.Tensor]:
     """Per sample count n, the (3,) ratio sum(photo) / sum(statistic) over the pixels with n
-    samples in all views. A count with fewer than ``min_pixels`` pixels takes the ratio of the
-    nearest count that has enough (the pixels of all counts, if none has)."""
+    samples in all views. Pixels without a sample (n = 0: the statistic says nothing there)
+    take no part. A count with fewer than ``min_pixels`` pixels takes the ratio of the nearest
+    count that has enough (the pixels of all counts, if none has)."""
     sums: dict[int, list] = {}
     for p, s, c in zip(photos, stats, counts):
         for n in torch.unique(c).tolist():
+            if n < 1:
+                continue
             m = c == n
             acc = sums.setdefault(int(n), [torch.zeros(3, dtype=torch.float64, device="cpu"),
                                            torch.zeros(3, dtype=torch.float64, device="cpu"), 0])
             acc[0] += p[m].double().sum(0).cpu()
             acc[1] += s[m].double().sum(0).cpu()
             acc[2] += int(m.sum())
+    if not sums:
+        return {}
     ok = {n: (a[0] / a[1].clamp_min(1e-12)).float() for n, a in sums.items() if a[2] >= min_pixels}
     if not ok:
         tot = [sum(a[0] for a in sums.values()), sum(a[1] for a in sums.values())]

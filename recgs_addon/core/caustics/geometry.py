@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from ..train.coverage import DEPTH_TOL
-from .consensus import backproject
+from .consensus import _sample, backproject, project
 
 #: Overlap grid: pixels of a frame sampled along each side to measure what another frame sees of it.
 OVERLAP_GRID = 24
@@ -55,8 +55,8 @@ class PassView:
     """One training frame as the estimator needs it."""
 
     photo: torch.Tensor            # (H, W, 3) sRGB in [0, 1]
-    surface: torch.Tensor          # (H, W) camera-space depth of the model's surface
-    covered: torch.Tensor          # (H, W) bool: the model covers the pixel
+    surface: torch.Tensor          # (H, W) camera-space depth of the seabed it sees
+    covered: torch.Tensor          # (H, W) bool: that depth is known
     viewmat: torch.Tensor          # (4, 4)
     K: torch.Tensor                # (3, 3)
     time: Optional[float] = None   # seconds into the survey's clip (None: a photo of its own)
@@ -105,6 +105,19 @@ def overlap_matrix(views: Sequence[PassView], depth_tol: float = DEPTH_TOL) -> n
             if j != i:
                 out[i, j] = float(_sees(pts, vj, depths[j], depth_tol).float().mean())
     return out
+
+
+def warp(vi: PassView, vj: PassView, depth_tol: float = DEPTH_TOL) -> tuple[torch.Tensor, torch.Tensor]:
+    """Frame ``vj``'s photo sampled (bilinear) at the projections of frame ``vi``'s pixels, and
+    where that is the same surface: (sRGB (H, W, 3), valid (H, W) bool: inside ``vj``, in front
+    of it, ``vj``'s own depth there within ``depth_tol`` (relative), ``vi``'s depth known)."""
+    pts = backproject(depth_map(vi), vi.viewmat, vi.K)
+    grid, z = project(pts, {"viewmat": vj.viewmat, "K": vj.K, "depth": vj.surface})
+    near = _sample(depth_map(vj), grid, "nearest")
+    g = grid[0]
+    ok = ((g[..., 0].abs() <= 1) & (g[..., 1].abs() <= 1) & (z > 1e-6)
+          & ((near - z).abs() <= depth_tol * z) & vi.covered)
+    return _sample(vj.photo, grid, "bilinear"), ok
 
 
 def blur(x: torch.Tensor, w: torch.Tensor, sigma: float) -> torch.Tensor:

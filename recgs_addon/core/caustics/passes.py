@@ -28,7 +28,8 @@ each training frame ``i``:
    floor is darker than the mean light the ground truth shows, by a factor that depends on how
    many frames it was taken over: the survey's own photos calibrate it (they hold the mean
    light), per number of frames ``n`` and channel, as the ratio of the photos' sum to the
-   floor's over all pixels seen by ``n`` frames (``consensus.gain_by_count``). What varies
+   floor's over all pixels seen by ``n`` frames (``consensus.gain_by_count``, as the consensus
+   estimator's lower envelopes are). What varies
    between passes at a point is light, whatever its frequency, so this replaces the whole band.
 5. **Too few passes.** Where fewer than ``min_passes`` independent passes saw a pixel, the
    frame keeps its per-frame estimate (``fallback``, RecGS's low-pass target), blended in over
@@ -37,9 +38,7 @@ each training frame ``i``:
 :func:`pass_targets` returns the targets and, per frame, the share of pixels that came from
 the passes.
 
-Shapes: photos and targets (H, W, 3) float32 sRGB in [0, 1]; ``surface`` (H, W) camera-space
-depth of the model's surface (NaN or 0 where it covers nothing); cameras ``viewmat`` (4, 4)
-world-to-camera (OpenCV axes) and ``K`` (3, 3), pixel centres at +0.5.
+Shapes: photos and targets (H, W, 3) float32 sRGB in [0, 1]; frames are ``geometry.PassView``.
 """
 from __future__ import annotations
 
@@ -51,14 +50,12 @@ import numpy as np
 import torch
 
 from ..train.coverage import DEPTH_TOL, PASS_SECONDS
-from .consensus import _sample, apply_count_gain, backproject, project
-from .geometry import PassView, depth_map, overlap_matrix, smooth
+from .consensus import apply_count_gain, gain_by_count
+from .geometry import PassView, overlap_matrix, smooth, warp
 from .lightfield import linear_to_srgb, srgb_to_linear
 
 #: A frame that sees less than this share of another's covered pixels is not its neighbour.
 MIN_OVERLAP = 0.05
-#: A count of frames needs this many pixels in the survey to calibrate its own gain.
-CALIBRATION_PIXELS = 500
 #: Frames further apart in time than this saw independent light (waves that focus sunlight
 #: pass in a few seconds); the light's correlation time is looked for below it.
 MAX_LAG_S = 4.0
@@ -120,24 +117,16 @@ def gather(i: int, views: Sequence[PassView], groups: list[list[int]], depth_tol
     itself first): (samples (F, H, W, 3) linear light, valid (F, H, W) bool, passes (H, W):
     the groups with a valid frame at each pixel)."""
     vi = views[i]
-    pts = backproject(depth_map(vi), vi.viewmat, vi.K)
     samples, valid = [], []
     passes = torch.zeros(vi.surface.shape, dtype=torch.int64, device=vi.surface.device)
     for g in groups:
         seen = torch.zeros_like(vi.covered)
         for j in g:
             if j == i:
-                samples.append(_linear(vi.photo))
-                valid.append(vi.covered)
-                seen |= vi.covered
-                continue
-            vj = views[j]
-            grid, z = project(pts, {"viewmat": vj.viewmat, "K": vj.K, "depth": vj.surface})
-            near = _sample(depth_map(vj), grid, "nearest")
-            gg = grid[0]
-            ok = ((gg[..., 0].abs() <= 1) & (gg[..., 1].abs() <= 1) & (z > 1e-6)
-                  & ((near - z).abs() <= depth_tol * z) & vi.covered)
-            samples.append(_linear(_sample(vj.photo, grid, "bilinear")))
+                sample, ok = vi.photo, vi.covered
+            else:
+                sample, ok = warp(vi, views[j], depth_tol)
+            samples.append(_linear(sample))
             valid.append(ok)
             seen |= ok
         passes += seen
@@ -172,7 +161,7 @@ def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] =
     # the floor is darker than the mean light by a factor that depends on how many frames it
     # was taken over: calibrated on the photos themselves (they hold the mean light)
     if gains is None:
-        gains = calibrate(owns, stats, counts)
+        gains = gain_by_count(owns, stats, counts)
     estimates, weights, info = [], [], {"passes": [], "share": [], "gains": gains}
     for k, i in enumerate(ids):
         estimates.append(linear_to_srgb(apply_count_gain(stats[k], counts[k], _for_counts(gains, counts[k])).clamp_min(0)))
@@ -198,31 +187,6 @@ def pass_targets(views: Sequence[PassView], settings: Optional[PassSettings] = N
     est, wts, info = pass_estimates(views, settings, ids, **kw)
     base = [views[i].photo for i in ids] if fallback is None else fallback
     return [blend(e, w, b) for e, w, b in zip(est, wts, base)], info
-
-
-def calibrate(photos: Sequence[torch.Tensor], stats: Sequence[torch.Tensor], counts: Sequence[torch.Tensor],
-              min_pixels: int = CALIBRATION_PIXELS) -> dict[int, torch.Tensor]:
-    """Per number of frames ``n`` a pixel's floor was taken over, the (3,) ratio of the photos'
-    sum to the floor's over all pixels with ``n`` (linear light; the photos hold the mean
-    light). Pixels no frame saw (``n`` = 0) take no part; a count with fewer than ``min_pixels``
-    pixels takes the ratio of the nearest count that has enough (of all pixels, if none has)."""
-    sums: dict[int, list] = {}
-    for p, st, c in zip(photos, stats, counts):
-        for n in torch.unique(c).tolist():
-            if n < 1:
-                continue
-            m = c == n
-            acc = sums.setdefault(int(n), [torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), 0])
-            acc[0] += p[m].double().sum(0).cpu()
-            acc[1] += st[m].double().sum(0).cpu()
-            acc[2] += int(m.sum())
-    if not sums:
-        return {}
-    ok = {n: (a[0] / a[1].clamp_min(1e-12)).float() for n, a in sums.items() if a[2] >= min_pixels}
-    if not ok:
-        pooled = (sum(a[0] for a in sums.values()) / sum(a[1] for a in sums.values()).clamp_min(1e-12)).float()
-        return {n: pooled for n in sums}
-    return {n: ok[n] if n in ok else ok[min(ok, key=lambda k: abs(k - n))] for n in sums}
 
 
 def _for_counts(gains: dict, counts: torch.Tensor) -> dict:
@@ -251,9 +215,6 @@ def floor_statistic(samples: torch.Tensor, valid: torch.Tensor, tol: float = 0.1
     return torch.einsum("fhwc,fhw->hwc", samples, m) / m.sum(0).clamp_min(1e-6).unsqueeze(-1)
 
 
-# --- geometry --------------------------------------------------------------------------------
-
-
 def light_statistics(views: Sequence[PassView], overlap: np.ndarray, sources: Optional[Sequence[int]] = None,
                      sigma: float = 3.0, pairs: int = 8, shared: float = 0.5) -> dict:
     """How strong the moving light is and how long it stays put at a seabed point, from the
@@ -275,18 +236,13 @@ def light_statistics(views: Sequence[PassView], overlap: np.ndarray, sources: Op
     rng = np.random.default_rng(0)
 
     def pair_var(i: int, j: int) -> Optional[float]:
-        vi, vj = views[i], views[j]
-        pts = backproject(depth_map(vi), vi.viewmat, vi.K)
-        grid, z = project(pts, {"viewmat": vj.viewmat, "K": vj.K, "depth": vj.surface})
-        near = _sample(depth_map(vj), grid, "nearest")
-        g = grid[0]
-        ok = ((g[..., 0].abs() <= 1) & (g[..., 1].abs() <= 1) & (z > 1e-6) & vi.covered
-              & ((near - z).abs() <= DEPTH_TOL * z))
+        vi = views[i]
+        other, ok = warp(vi, views[j])
         if int(ok.sum()) < 100:
             return None
         s = sigma * vi.photo.shape[1] / 320.0
         a = smooth(_linear(vi.photo).mean(-1).unsqueeze(0), ok.unsqueeze(0), s)[0]
-        b = smooth(_linear(_sample(vj.photo, grid, "bilinear")).mean(-1).unsqueeze(0), ok.unsqueeze(0), s)[0]
+        b = smooth(_linear(other).mean(-1).unsqueeze(0), ok.unsqueeze(0), s)[0]
         r = (torch.log(b + 0.01) - torch.log(a + 0.01))[ok]
         return float((1.4826 * (r - r.median()).abs().median()) ** 2)
 

@@ -308,7 +308,7 @@ class RecGS(Method):
         g = self.geometry
         if g["estimates"] is None:   # no moving light: the round that finds it drops C
             return self._estimate(photo, render, self.k)
-        low = remove_caustics(photo, estimate_caustics(photo, render, self.k, "additive", self.ccfg.caustic_dc))
+        low = compensate_caustics(photo, render, self.k, "additive", self.ccfg.caustic_dc)
         return photo - passes.blend(g["estimates"][index].float(), g["weights"][index].float(), low)
 
     @torch.no_grad()
