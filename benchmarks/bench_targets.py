@@ -1,6 +1,7 @@
 """How good are the pass estimator's caustic-free targets, before any training?
 
     .venv/bin/python benchmarks/bench_targets.py SURVEY [--model MODEL.ply] [--depth points|true|model]
+        [--set FIELD=VALUE ...]
 
 For a generated survey with ground truth (``clean/``), builds every training frame's target as
 the pass estimator does (core/caustics/passes.py) and prints, against ground truth: the photos,
@@ -15,6 +16,7 @@ time of each part.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -56,6 +58,8 @@ def main(argv=None) -> int:
     ap.add_argument("--model", type=Path, default=None, help="a trained model's PLY (low-pass fallback, --depth model)")
     ap.add_argument("--depth", choices=("points", "true", "model"), default="points")
     ap.add_argument("--holdout-every", type=int, default=8)
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a PassSettings field for this measurement (repeatable), e.g. --set per_pass=8")
     args = ap.parse_args(argv)
     if args.depth == "model" and args.model is None:
         ap.error("--depth model needs --model")
@@ -105,12 +109,20 @@ def main(argv=None) -> int:
     t = time.perf_counter()
     light = passes.light_statistics(views, overlap)
     settings = passes.PassSettings(**({"pass_seconds": light["correlation_s"]} if light["correlation_s"] else {}))
+    for item in args.set:
+        field, _, value = item.partition("=")
+        if not hasattr(settings, field):
+            ap.error(f"--set {item}: PassSettings has no field {field!r}")
+        kind = type(getattr(settings, field))
+        settings = dataclasses.replace(settings, **{field: kind(value)})
     t_light = time.perf_counter() - t
     print(f"  light: std {light['light_std']} log units, correlation time {light['correlation_s']} s "
           f"(shared variance by lag {light['shared']}; {t_light:.1f} s)")
     t = time.perf_counter()
     targets, info = passes.pass_targets(views, settings, fallback, overlap=overlap)
     t_est = time.perf_counter() - t
+    if args.set:
+        print(f"  settings: {', '.join(args.set)}")
     p = np.mean([psnr(x.clamp(0, 1), gts[i]) for x, i in zip(targets, ids)])
     print(f"  targets {p:.2f} dB (median passes {np.median(info['passes']):g}, share from the passes "
           f"{np.mean(info['share']):.2f}; {t_est:.1f} s)")
