@@ -170,12 +170,12 @@ def make(scene, gt_images="clean", **kw):
 def test_auto_estimator_follows_the_views_per_point(caustic_scene, monkeypatch):
     """``auto`` picks the passes where the survey's median passes over a seabed point reach
     PASSES_MIN and the low-pass estimate below, and says why in the summary."""
-    from recgs_addon.core.caustics import recgs as rg
+    from recgs_addon.core.caustics import estimators
     from recgs_addon.core.train.coverage import sparse_coverage
 
     views = None
     for threshold, expected in ((1, "passes"), (10 ** 6, "lowpass")):
-        monkeypatch.setattr(rg, "PASSES_MIN", threshold)
+        monkeypatch.setattr(estimators, "PASSES_MIN", threshold)
         m = make(caustic_scene, estimator="auto", iterations=1)
         views = sparse_coverage(m.trainer.data).median_views
         s = m.summary()
@@ -207,12 +207,12 @@ def test_passes_estimator_drops_c_without_moving_light(clean_scene, monkeypatch)
     again. The light measured between frames is what decides (the floor is raised here: the
     48x36 test images' resampled texture reads as 0.05 log units of light, a dive survey's
     clean photos as 0.006)."""
-    from recgs_addon.core.caustics import recgs as rg
+    from recgs_addon.core.caustics import estimators
 
     m = make(clean_scene, estimator="passes", iterations=500, warmup=300, recurrence_steps=100)
     m.run()
     assert m.dropped and m.references is None and m.trainer.best_by == "psnr_captured"
-    monkeypatch.setattr(rg, "LIGHT_FLOOR", 0.1)
+    monkeypatch.setattr(estimators, "LIGHT_FLOOR", 0.1)
     m = make(clean_scene, estimator="passes", iterations=500, warmup=300, recurrence_steps=100)
     m.run()
     assert m.dropped and "no moving light" in m.drop_reason, m.drop_reason

@@ -10,7 +10,7 @@ import torch
 
 from recgs_addon.core.caustics import geometry as G
 from recgs_addon.core.caustics import passes as P
-from recgs_addon.core.caustics.recgs import LIGHT_FLOOR
+from recgs_addon.core.caustics.estimators import LIGHT_FLOOR
 from recgs_addon.core.caustics.lightfield import linear_to_srgb, srgb_to_linear
 from recgs_addon.core.train.losses import psnr
 

@@ -36,7 +36,7 @@ class CausticConfig:
     max_recurrences: int = 40
     recurrence_tol: float = 0.1          # stop when mean |dC| / mean |C| falls below this
     caustic_floor: float = 0.01          # recgs: C is dropped when mean |C| is below this (1 % of full scale)
-    estimator: str = "auto"              # recgs: auto = from the survey's views per point (recgs.choose_estimator)
+    estimator: str = "auto"              # recgs: auto = from the survey's views per point (estimators.choose_estimator)
                                          # | lowpass: C = lowpass(I - render) (paper)
                                          # | passes: the floor of the light over the passes that saw each point (passes.py)
                                          # | consensus: I - multi-view consensus

@@ -1,0 +1,277 @@
+"""RecGS's caustic estimates, estimator by estimator: each training view's C (the maps) and
+the caustic-free image a view fits, and what a held-out render is scored against.
+
+:class:`Estimates` is a part of :class:`.recgs.RecGS` (its state lives there): the low-pass
+estimate of the paper (``estimate.py``), the targets from the passes that saw each point
+(``passes.py``, ``geometry.py``), the light field (``lightfield.py``), the gain likelihood
+(``likelihood.py``) and the multi-view consensus (``consensus.py``). :func:`choose_estimator`
+is what ``auto`` stands for on a survey.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from ..io.frames import read_frame_times
+from ..train.data import view_tensors
+from . import fft_filter, geometry, lightfield, likelihood, passes
+from .consensus import consensus_targets
+from .estimate import compensate_caustics, estimate_caustics, remove_caustics
+from .robust import trim_weights
+
+#: likelihood: training views a refit of the gain distribution renders, at most
+FIT_VIEWS = 24
+#: auto: the survey's median independent passes over a seabed point (sparse points, before
+#: training; frames under a second apart count once, core/train/coverage.py) from which the
+#: targets come from the passes (``passes.py``); below it, the paper's low-pass estimate. With
+#: two passes a point the floor of the light is seen at most points; where fewer passes saw a
+#: pixel the pass estimator keeps the low-pass target itself (benchmarks/RESULTS.md).
+PASSES_MIN = 2
+
+
+#: passes: the moving light's standard deviation between frames (log units, benchmarks/RESULTS.md:
+#: 0.006 on a survey without caustics, from misregistered texture; 0.37 under light networks)
+#: below which there are no caustics to remove.
+LIGHT_FLOOR = 0.03
+
+
+def choose_estimator(data) -> tuple[str, str]:
+    """The estimator ``auto`` stands for on this survey, and why: the passes where the survey's
+    sparse points show each seabed point seen in enough independent passes, the low-pass
+    estimate otherwise."""
+    from ..train.coverage import sparse_coverage
+
+    cov = sparse_coverage(data)
+    if not cov.points:
+        return "lowpass", "no sparse points to count views with"
+    views = f"a median of {cov.median_views:g} training views in {cov.median_passes:g} passes a seabed point"
+    if cov.median_passes >= PASSES_MIN:
+        return "passes", f"{views}: targets from the passes that saw each point (>= {PASSES_MIN} passes)"
+    return "lowpass", f"{views}: the low-pass estimate (the passes need >= {PASSES_MIN})"
+
+
+class Estimates:
+    """The estimator side of :class:`.recgs.RecGS` (module docstring)."""
+
+    def _reference(self, index: int, image: torch.Tensor, render: torch.Tensor) -> torch.Tensor:
+        """What a held-out render is scored against for the trainer's decisions: the photo
+        during the warm-up (it is plain 3DGS and decides as plain 3DGS does: scored against
+        compensated photos, growth went on to 3x the Gaussians, half of them carrying no
+        view), the photo with its caustics compensated once C is in use."""
+        if self.stage == "warmup":
+            return image
+        if self.references is not None and index in self.references:
+            return self.references[index].float()
+        if self._likelihood:   # its own light map follows the render too closely to score it
+            return compensate_caustics(image, render, self._eval_k, "additive", False)
+        return self._decaustic(image, self._estimate(image, render, self._eval_k))
+
+
+    @property
+    def _eval_k(self) -> int:
+        """The filter held-out views are compensated with: the training views' (the paper's
+        9 until it is chosen)."""
+        return self.k or fft_filter.DEFAULT_K
+
+    @property
+    def _lightfield(self) -> bool:
+        return self.ccfg.estimator == "lightfield"
+
+    @property
+    def _likelihood(self) -> bool:
+        return self.ccfg.estimator == "likelihood"
+
+    @property
+    def _passes(self) -> bool:
+        return self.ccfg.estimator == "passes"
+
+    def _sigma(self, image: torch.Tensor) -> float:
+        """The light's blur in pixels at this image's width (``light_sigma`` is given at 320 px)."""
+        return self.ccfg.light_sigma * image.shape[1] / 320.0
+
+    def _decaustic(self, image: torch.Tensor, cmap: torch.Tensor) -> torch.Tensor:
+        if self._likelihood:
+            return likelihood.remove_light(image, cmap)
+        if self._lightfield:   # the photo under the floor light, brought to the survey's mean light
+            return lightfield.scale_linear(lightfield.remove_light(image, cmap), self.light_gain)
+        return remove_caustics(image, cmap, self.ccfg.caustic_model)
+
+    def _estimate(self, image: torch.Tensor, rgb: torch.Tensor, k: int) -> torch.Tensor:
+        """C of a view from its photo and render, over the pixels trimming keeps (lightfield:
+        its light field, against the render brought down to the floor light)."""
+        if self._lightfield:
+            return self._light_fields([image], [rgb], k)[0]
+        if self._likelihood:
+            return likelihood.light_map(image, rgb, self._sigma(image))
+        w = trim_weights(image, rgb, self.targets.k) if self.targets.k else None
+        return estimate_caustics(image, rgb, k, self.ccfg.caustic_model, self.ccfg.caustic_dc, w)
+
+    def _light_fields(self, images: list, renders: list, k: int) -> torch.Tensor:
+        """(B, H, W) light fields of views of one size (``lightfield.py``); the model renders
+        the mean light, so its render is brought down by the survey gain first."""
+        q = torch.stack([lightfield.grey_log_ratio(i, lightfield.scale_linear(r, 1.0 / self.light_gain))
+                         for i, r in zip(images, renders)])
+        return lightfield.light_fields(q, k, self.ccfg.lf_lambda, self.ccfg.lf_tau)
+
+    def caustic_map(self, index: int) -> torch.Tensor:
+        """Additive caustic estimate ``C = I - (caustic-free I)`` of a training view (full res)."""
+        image = self.data.view(index, 1)[1]
+        return image - self.decaustic_image(index)
+
+    @torch.no_grad()
+    def decaustic_image(self, index: int) -> torch.Tensor:
+        image = self.data.view(index, 1)[1]
+        if self._likelihood:   # the light of the view against the model as it is now
+            if self.gain_model is None:
+                return image
+            return self._decaustic(image, self._estimate(image, self.trainer.render_view(index), 0))
+        cmap = self.maps.get(index)
+        if cmap is not None and self.final and self._by_view:   # against the model kept
+            cmap = self._view_estimate(index, self.trainer.render_view(index))
+        return image if cmap is None else self._decaustic(image, cmap.float())
+
+    def _set_maps(self, maps: dict[int, torch.Tensor]) -> None:
+        """Use these estimates: each training view now fits its caustic-free image. The maps
+        are kept as float16, as the targets are (``FixedTargets``)."""
+        self.maps = {i: m.to(torch.float16) for i, m in maps.items()}
+        self.targets.clear()
+        if self._likelihood:   # the likelihood fits the photos themselves (``_nll``)
+            return
+        for i, m in self.maps.items():   # from the kept maps, so a resumed run sets the same targets
+            self.targets.put(i, self._decaustic(self.data.view(i, 1)[1], m.float()))
+
+    # --- one round's estimates ----------------------------------------------------------
+    def _estimates(self, ids: list[int]) -> dict[int, torch.Tensor]:
+        """Every training view's new estimate of C (the estimator's maps) against the model now."""
+        if self.ccfg.estimator == "consensus":
+            return self._consensus_maps()
+        renders = {i: self.trainer.render_view(i) for i in ids}
+        if self.k is None:
+            self.k = fft_filter.choose_k([self.data.view(i, 1)[1] - renders[i] for i in ids])
+        if self._lightfield:
+            return self._light_field_maps(renders)
+        if self._likelihood:
+            return self._likelihood_maps(ids, renders)
+        return {i: self._view_estimate(i, renders[i]) for i in ids}
+
+    @property
+    def _by_view(self) -> bool:
+        """The estimator makes a view's C from that view's photo and render alone."""
+        return self.ccfg.estimator in ("lowpass", "passes")
+
+    def _view_estimate(self, index: int, render: torch.Tensor) -> torch.Tensor:
+        """C of training view ``index`` against ``render`` (``_by_view`` estimators): the
+        low-pass estimate, or (passes) the photo less its target: the passes' estimate where
+        enough passes saw a pixel, the low-pass target elsewhere."""
+        photo = self.data.view(index, 1)[1]
+        if not self._passes:
+            return self._estimate(photo, render, self.k)
+        if self.geometry is None:   # the first round, or the first use after a resume (not checkpointed)
+            self.geometry = self._make_pass_estimates()
+        g = self.geometry
+        if g["estimates"] is None:   # no moving light: the round that finds it drops C
+            return self._estimate(photo, render, self.k)
+        low = compensate_caustics(photo, render, self.k, "additive", self.ccfg.caustic_dc)
+        return photo - passes.blend(g["estimates"][index].float(), g["weights"][index].float(), low)
+
+    def _light_field_maps(self, renders: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
+        """Every training view's light field (batched by image size), then the survey gain
+        that brings the targets under the floor light back to the photos' mean light."""
+        ids = self.data.train_ids
+        by_size: dict[tuple, list[int]] = {}
+        for i in ids:
+            by_size.setdefault(tuple(renders[i].shape), []).append(i)
+        new = {}
+        for group in by_size.values():
+            fields = self._light_fields([self.data.view(i, 1)[1] for i in group], [renders[i] for i in group], self.k)
+            new.update(zip(group, fields))
+        photos = [self.data.view(i, 1)[1] for i in ids]
+        self.light_gain = lightfield.linear_gain((p, lightfield.remove_light(p, new[i])) for p, i in zip(photos, ids))
+        return new
+
+    def _make_pass_estimates(self) -> dict:
+        """The passes' part of the targets (``passes.py``), which does not depend on the model:
+        every training and held-out frame with the survey's geometry (sparse points refined by
+        a plane sweep; the model's depth where there are no points), the light's statistics,
+        each training frame's estimate and weight (kept as float16), and the held-out frames'
+        references gathered from the training frames alone."""
+        t = time.perf_counter()
+        tr, data = self.trainer, self.data
+        ids = sorted(data.train_ids + data.test_ids)
+        times = read_frame_times(data.scene.scene_dir) or {}
+        views = []
+        for i in ids:
+            cam, photo = data.view(i, 1)
+            viewmat, K = view_tensors(cam, tr.device)
+            out = tr.render_output(i)
+            views.append(geometry.PassView(photo, out.depth / out.alpha.clamp_min(1e-6), out.alpha > 0.5,
+                                         viewmat, K, times.get(cam.name)))
+        pts = torch.as_tensor(data.scene.points, dtype=torch.float32, device=tr.device)
+        brought = geometry.prior_geometry(views, pts)
+        overlap = geometry.overlap_matrix(views)
+        pos = {i: n for n, i in enumerate(ids)}
+        train, test = [pos[i] for i in data.train_ids], [pos[i] for i in data.test_ids]
+        # the light first (a few seconds): without moving light C is dropped, so the plane
+        # sweep and the gathers (most of the time) are not made
+        light = passes.light_statistics(views, overlap, train)
+        if light["light_std"] is not None and light["light_std"] < LIGHT_FLOOR:
+            self.pass_info = {"seconds": round(time.perf_counter() - t, 2),
+                              **{k: v for k, v in light.items() if k != "correlation_s"}}
+            return {"estimates": None, "light": light}
+        geometry.refine_geometry(views, overlap, brought)
+        settings = passes.PassSettings(**({"pass_seconds": light["correlation_s"]}
+                                          if light.get("correlation_s") is not None else {}))
+        est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train)
+        if test:
+            refs, _ = passes.pass_targets(views, settings, ids=test, overlap=overlap, sources=train, gains=info["gains"])
+            self.references = {i: r.half() for i, r in zip(data.test_ids, refs)}
+            tr.best_by = "psnr"   # the references do not follow the model
+        seconds = round(time.perf_counter() - t, 2)
+        self.pass_info = {"median_passes": float(np.median(info["passes"])), "share": round(float(np.mean(info["share"])), 4),
+                          "pass_seconds": settings.pass_seconds, "seconds": seconds,
+                          **{k: v for k, v in light.items() if k != "correlation_s"},
+                          "share_per_frame": {data.scene.cameras[i].name: round(float(x), 3)
+                                              for i, x in zip(data.train_ids, info["share"])}}
+        return {"estimates": {i: e.half() for i, e in zip(data.train_ids, est)},
+                "weights": {i: w.half() for i, w in zip(data.train_ids, wts)}, "light": light}
+
+    def _fit_views(self) -> list[int]:
+        """likelihood: the training views a refit renders: all of a small survey, an evenly
+        spread :data:`FIT_VIEWS` of a large one (the gains' distribution needs samples, not
+        every view; the caustic-free photos are made from the final model, view by view)."""
+        ids = self.data.train_ids
+        if len(ids) <= FIT_VIEWS:
+            return list(ids)
+        return [ids[int(k * len(ids) / FIT_VIEWS)] for k in range(FIT_VIEWS)]
+
+    def _likelihood_maps(self, ids: list[int], renders: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
+        """Refit the survey's gain likelihood to the residuals of views ``ids`` (every other
+        pixel of each) and fit it from now on (``_nll``); their light maps."""
+        samples = [likelihood.log_ratio(self.data.view(i, 1)[1], renders[i])[::2, ::2].reshape(-1) for i in ids]
+        self.gain_model = likelihood.GainLikelihood.fit(torch.cat(samples))
+        self._use_likelihood()
+        return {i: likelihood.light_map(self.data.view(i, 1)[1], renders[i], self._sigma(renders[i])) for i in ids}
+
+    def _use_likelihood(self) -> None:
+        """Fit the views to the gain likelihood from the next step on (``LikelihoodObjective``)."""
+        if isinstance(self.trainer.objective, likelihood.LikelihoodObjective):
+            self.trainer.objective.gain = self.gain_model
+        else:
+            self.trainer.set_objective(likelihood.LikelihoodObjective(self.gain_model, self._sigma,
+                                                                      reference=self._reference))
+
+    def _consensus_maps(self) -> dict[int, torch.Tensor]:
+        """C = I - (gain-restored multi-view consensus of the photos), with the model's depth
+        (``consensus.py``)."""
+        tr, ids = self.trainer, self.data.train_ids
+        views = []
+        for i in ids:
+            cam, photo = self.data.view(i, 1)
+            out = tr.render_output(i)
+            viewmat, K = view_tensors(cam, tr.device)
+            views.append(dict(photo=photo, depth=out.depth, alpha=out.alpha, viewmat=viewmat, K=K))
+        targets, _, _ = consensus_targets(views, self.ccfg.consensus_stat, self.ccfg.consensus_q)
+        return {i: v["photo"] - t for i, v, t in zip(ids, views, targets)}
+
