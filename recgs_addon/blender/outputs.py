@@ -1,0 +1,100 @@
+"""A finished job's outputs: Export Caustic-Free Images (copies ``OUT/decaustic`` to a folder)
+and Open Report (``report.md``, else ``metrics.json``, in a Text Editor)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import bpy
+from bpy.props import StringProperty
+
+from ..core.io.atomic import copy_file, make_folder
+from .workflow import WorkflowError, _run, out_dir_for, scene_dir_for
+
+#: Name of the text datablock that Open Report fills.
+REPORT_TEXT = "RecGS report"
+
+
+def _job_out(context) -> Path:
+    obj = context.active_object
+    s = context.scene.recgs
+    try:
+        scene_dir = scene_dir_for(s, obj)
+    except WorkflowError:
+        scene_dir = None
+    out = out_dir_for(s, obj, scene_dir)
+    if out is None or not out.is_dir():
+        raise WorkflowError("No training output yet: Train first (or set the Output Folder)")
+    return out
+
+
+class RECGS_OT_export_images(bpy.types.Operator):
+    """Copy the caustic-free photos written by the last caustic-removal job to a folder"""
+
+    bl_idname = "recgs.export_images"
+    bl_label = "Export Caustic-Free Images"
+    bl_options = {"REGISTER"}
+
+    directory: StringProperty(name="Folder", subtype="DIR_PATH")
+    filter_folder: bpy.props.BoolProperty(default=True, options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        return _run(self, self._export, context)
+
+    def _export(self, context) -> str:
+        src = _job_out(context) / "decaustic"
+        files = sorted(p for p in src.glob("*") if p.is_file()) if src.is_dir() else []
+        if not files:
+            raise WorkflowError(f"{src}: no caustic-free images; train with a caustic-removal mode "
+                                "(RecGS, 2D Filter, Joint) first")
+        if not self.directory:
+            raise WorkflowError("Choose a folder to export the images to")
+        dst = make_folder(Path(bpy.path.abspath(self.directory)), "folder")
+        for p in files:
+            copy_file(p, dst / p.name, "image")
+        return f"Exported {len(files)} caustic-free images to {dst}"
+
+
+class RECGS_OT_open_report(bpy.types.Operator):
+    """Open the last job's report (report.md, else metrics.json) in a Text Editor"""
+
+    bl_idname = "recgs.open_report"
+    bl_label = "Open Report"
+    bl_options = {"REGISTER"}
+
+    def execute(self, context):
+        return _run(self, self._open, context)
+
+    def _open(self, context) -> str:
+        out = _job_out(context)
+        path = next((p for p in (out / "report.md", out / "metrics.json") if p.is_file()), None)
+        if path is None:
+            raise WorkflowError(f"{out}: no report.md or metrics.json yet (they are written when a job ends)")
+        text = bpy.data.texts.get(REPORT_TEXT) or bpy.data.texts.new(REPORT_TEXT)
+        text.from_string(path.read_text(encoding="utf-8"))
+        text.filepath = str(path)
+        shown = _show_text(context, text)
+        return f"Opened {path}" + ("" if shown else f" as the text '{REPORT_TEXT}' (open it in a Text Editor)")
+
+
+def _show_text(context, text) -> bool:
+    if context.window is None or bpy.app.background:
+        return False
+    for area in context.screen.areas:
+        if area.type == "TEXT_EDITOR":
+            area.spaces.active.text = text
+            return True
+    try:  # a new window showing the text
+        bpy.ops.wm.window_new()
+        area = bpy.context.window_manager.windows[-1].screen.areas[0]
+        area.type = "TEXT_EDITOR"
+        area.spaces.active.text = text
+        return True
+    except (RuntimeError, IndexError, AttributeError):
+        return False
+
+
+classes = (RECGS_OT_export_images, RECGS_OT_open_report)
