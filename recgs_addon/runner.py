@@ -27,8 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .core.caustics.config import CAUSTIC_MODES, ESTIMATORS, CausticConfig
+from .core.caustics.config import CAUSTIC_MODES, ESTIMATORS, MODES, CausticConfig
 from .core.errors import RecGSError
+from .core.train.config import DEFAULT_STRATEGY, DENSITY_DEFAULTS
 
 
 def _emit(event: str, **fields) -> None:
@@ -62,7 +63,7 @@ def add_train_arguments(p) -> None:
     p.add_argument("scene_dir", type=Path, help="folder with images/ and sparse/0")
     p.add_argument("--out", type=Path, required=True,
                    help="output folder (checkpoint.pt, point_cloud.ply, metrics.json, the run's report)")
-    p.add_argument("--mode", choices=["3dgs", "recgs", "filter2d", "joint", "oracle"], default="3dgs",
+    p.add_argument("--mode", choices=MODES, default="3dgs",
                    help="3dgs: plain Gaussian Splatting; recgs: with caustic removal (RecGS); "
                         "filter2d, joint, oracle: baselines (oracle trains on --gt-images). Use recgs for "
                         "photos with caustics: it trains on as 3dgs by itself where it finds none")
@@ -77,9 +78,9 @@ def add_train_arguments(p) -> None:
     p.add_argument("--budget", default="auto",
                    help="maximum number of Gaussians, or 'auto': stop adding Gaussians when held-out quality "
                         "stops improving. A fixed number gives a smaller file and a faster viewer, at some quality")
-    p.add_argument("--density", choices=["mcmc", "adc"], default=None,
-                   help="density control: adc (INRIA's clone/split by screen gradient; the default) or mcmc "
-                        "(relocate faded Gaussians under a fixed budget, 3DGS-MCMC; 2-3.5 dB lower held-out "
+    p.add_argument("--density", choices=sorted(DENSITY_DEFAULTS), default=None,
+                   help=f"density control (default {DEFAULT_STRATEGY}): adc (INRIA's clone/split by screen gradient) "
+                        "or mcmc (relocate faded Gaussians under a fixed budget, 3DGS-MCMC; 2-3.5 dB lower held-out "
                         "than adc in 5-minute runs on clean surveys)")
     p.add_argument("--downscale", type=int, default=1,
                    help="train at the photo size divided by N (after --max-side): 2 or 4 for quick trials")
@@ -153,15 +154,6 @@ def add_train_arguments(p) -> None:
                    help="recgs with trimming: rescale the colours to the photos' mean light at the end (default on)")
     p.add_argument("--keep-last", action="store_true",
                    help="end with the last model, not the one that scored best on the held-out photos")
-
-
-def default_density(mode: str) -> str:
-    """``adc`` (INRIA's clone/split) for every mode. The caustic methods need its sharper model
-    (on the sample, 4 minutes, recgs: caustic-free images 23.61 dB against mcmc's 21.88), and
-    plain 3DGS scores higher with it too: 5 minutes on clean photos, +2.0 dB held-out on the
-    24-photo sample and +3.0 and +3.5 dB on a 144-frame dive survey (benchmarks/RESULTS.md,
-    training-density-default). ``mcmc`` stays an option (``--density mcmc``)."""
-    return "adc"
 
 
 def _parse_budget(text: str):
@@ -245,7 +237,7 @@ def run_train(args) -> int:
                          device=args.device, holdout_every=args.holdout_every,
                          budget=_parse_budget(args.budget), compiled=False if args.eager else (True if args.compile_first else None),
                          keep_best=False if args.keep_last else None,
-                         strategy=args.density or default_density(args.mode))
+                         strategy=args.density)
             caustic = dict(mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
                            caustic_k=args.caustic_k, caustic_model=args.caustic_model, warmup=args.warmup,
                            recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,

@@ -219,3 +219,31 @@ def test_import_export_path_does_not_need_torch():
             "print('ok')")
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0 and "ok" in r.stdout, r.stderr
+
+
+def test_modes_estimators_and_density_controls_are_listed_once():
+    """The lists of modes, caustic modes, caustic estimators and density controls are written
+    in the core's config alone; the command line, the panel and the report take them from
+    there. A list, tuple or set literal anywhere else that names a whole one of them fails (a
+    dict that maps each to its own code is dispatch, not a copy)."""
+    from recgs_addon.core.caustics.config import CAUSTIC_MODES, ESTIMATORS, MODES
+    from recgs_addon.core.train.config import DENSITY_DEFAULTS
+
+    caustic_config = PKG / "core" / "caustics" / "config.py"
+    families = {
+        "modes": (set(MODES), caustic_config),
+        "caustic modes": (set(CAUSTIC_MODES), caustic_config),
+        "estimators": (set(ESTIMATORS) - {"auto"}, caustic_config),
+        "density controls": (set(DENSITY_DEFAULTS), PKG / "core" / "train" / "config.py"),
+    }
+    copies = []
+    for path in PKG.rglob("*.py"):
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node in ast.walk(tree):
+            if not isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+                continue
+            words = {e.value for e in node.elts if isinstance(e, ast.Constant) and isinstance(e.value, str)}
+            for family, (names, home) in families.items():
+                if names <= words and path != home:
+                    copies.append(f"{path.relative_to(ROOT)}:{node.lineno}: the {family} {sorted(names)}")
+    assert not copies, "written outside the core's config:\n" + "\n".join(copies)

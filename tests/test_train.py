@@ -203,10 +203,20 @@ def test_regulariser_gradient_is_autograds(small_scene):
     assert torch.all(op.grad[~in_view] == 0)
 
 
-def test_cli_density_default_is_clone_split_for_every_mode():
-    from recgs_addon.runner import default_density
-    assert {default_density(m) for m in ("3dgs", "recgs", "filter2d", "joint", "oracle")} == {"adc"}
-    assert preset("default", strategy=default_density("recgs")).pixels_per_gaussian == 8.0
+def test_density_default_is_declared_once_and_every_entry_takes_it():
+    """The trainer's config, the default preset and the command line (every mode) train with
+    DEFAULT_STRATEGY and that strategy's settings."""
+    from recgs_addon.cli import build_parser
+    from recgs_addon.core.train.config import DEFAULT_STRATEGY, DENSITY_DEFAULTS, TrainConfig
+
+    assert TrainConfig().strategy == preset("default").strategy == DEFAULT_STRATEGY == "adc"
+    assert preset("default").pixels_per_gaussian == DENSITY_DEFAULTS[DEFAULT_STRATEGY]["pixels_per_gaussian"]
+    parser = build_parser()
+    for mode in ("3dgs", "recgs", "filter2d", "joint", "oracle"):
+        args = parser.parse_args(["train", "scene", "--out", "o", "--mode", mode])
+        assert preset("default", strategy=args.density).strategy == DEFAULT_STRATEGY
+    args = parser.parse_args(["train", "scene", "--out", "o", "--density", "mcmc"])
+    assert preset("default", strategy=args.density).pixels_per_gaussian == DENSITY_DEFAULTS["mcmc"]["pixels_per_gaussian"]
 
 
 def test_mcmc_strategy_trains_within_its_budget(small_scene):

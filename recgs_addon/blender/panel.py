@@ -11,7 +11,7 @@ import bpy
 
 from . import gaussian_object as gobj
 from . import engine, preview, training
-from .properties import CAUSTIC_MODES
+from ..core.caustics.config import CAUSTIC_MODES
 
 
 class _RecGSPanel:

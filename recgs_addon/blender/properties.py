@@ -9,22 +9,14 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+from ..core.caustics.config import CAUSTIC_MODES, MODE_INFO
 from ..core.io.frame_choice import DEFAULT_FRAMES, MIN_FRAMES
 from ..core.io.video import DEFAULT_MAX_SIDE
 
 #: Folder settings may be relative to the .blend ("//..."); Blender 4.5+ wants that declared.
 _PATH = {"options": {"PATH_SUPPORTS_BLEND_RELATIVE"}} if bpy.app.version >= (4, 5, 0) else {}
 
-#: Modes that remove caustics (they take the caustic filter size).
-CAUSTIC_MODES = ("recgs", "filter2d", "joint")
-
-MODE_ITEMS = [
-    ("3dgs", "3DGS", "Plain Gaussian Splatting of the photos as they are (caustics included)"),
-    ("recgs", "RecGS", "Gaussian Splatting with recurrent caustic removal (Zhang et al. 2024)"),
-    ("filter2d", "2D Filter", "Remove caustics with the low-pass filter on each photo only, then train"),
-    ("joint", "Joint", "Learn the caustic images together with the Gaussians"),
-    ("oracle", "Oracle", "Train on the survey's caustic-free ground truth (clean/), for comparison"),
-]
+MODE_ITEMS = [(mode, label, description) for mode, (label, description) in MODE_INFO.items()]
 
 STATUS_ITEMS = [
     ("IDLE", "Idle", "No job has run"),

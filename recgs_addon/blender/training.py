@@ -23,7 +23,8 @@ from .job_follow import (TIMER_INTERVAL_S, ActiveJob, _begin, _check_free, activ
                          cancel, is_running, live_update, pump, stop_active, wait)
 from .job_progress import PHASE_SPANS, format_seconds, status_line  # noqa: F401 (re-exported)
 from .outputs import REPORT_TEXT, RECGS_OT_export_images, RECGS_OT_open_report  # noqa: F401 (re-exported)
-from .properties import CAUSTIC_MODES, train_options
+from ..core.caustics.config import CAUSTIC_MODES
+from .properties import train_options
 from .reconstruct import (RECGS_OT_import_video, RECGS_OT_reconstruct,  # noqa: F401 (re-exported)
                           start_reconstruction, start_video_import)
 from .workflow import DEFAULT_OUT, WorkflowError, _run, out_dir_for, scene_dir_for  # noqa: F401 (re-exported)

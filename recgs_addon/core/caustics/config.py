@@ -12,7 +12,16 @@ from typing import Optional
 
 from ..errors import RecGSError
 
-MODES = ("3dgs", "oracle", "recgs", "filter2d", "joint")
+#: Every mode: its name in the panel and what it does (the command line's --mode, the panel's
+#: Mode and the report take them from here).
+MODE_INFO = {
+    "3dgs": ("3DGS", "Plain Gaussian Splatting of the photos as they are (caustics included)"),
+    "recgs": ("RecGS", "Gaussian Splatting with recurrent caustic removal (Zhang et al. 2024)"),
+    "filter2d": ("2D Filter", "Remove caustics with the low-pass filter on each photo only, then train"),
+    "joint": ("Joint", "Learn the caustic images together with the Gaussians"),
+    "oracle": ("Oracle", "Train on the survey's caustic-free ground truth (clean/), for comparison"),
+}
+MODES = tuple(MODE_INFO)
 #: Modes that train on caustic-free estimates (and write caustic maps).
 CAUSTIC_MODES = ("recgs", "filter2d", "joint")
 #: How RecGS estimates each view's caustics (recgs.py).

@@ -8,6 +8,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..caustics.config import CAUSTIC_MODES
 from ..io.atomic import atomic_path
 from ..train.plan import MIN_PASSES, coverage_advice
 from . import plot
@@ -95,7 +96,7 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
                   f"in {cov['median_passes']:g} passes (frames less than a second apart count as one pass: they saw "
                   f"nearly the same light). {100 * cov['share_below']['5']:.0f} % of the points are seen by fewer "
                   "than 5 views.", ""]
-        if cov["median_passes"] < MIN_PASSES and cfg.get("mode") in ("recgs", "filter2d", "joint"):
+        if cov["median_passes"] < MIN_PASSES and cfg.get("mode") in CAUSTIC_MODES:
             lines += [coverage_advice(cov["median_views"], cov["median_passes"]) + ".", ""]
         lines += ["![coverage](report/coverage.png)"]
     sup = metrics.get("view_support")

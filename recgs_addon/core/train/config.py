@@ -1,12 +1,12 @@
 """Training settings: :class:`TrainConfig` holds every setting of the trainer (a caustic
 method's own settings live beside it, in core/caustics/config.py); :func:`preset` gives
 
-* ``default``: lean: coarse to fine, 3DGS-MCMC density control (Gaussians below opacity 0.1 relocated,
-  growth by opacity) under a budget of one Gaussian per 36 training pixels that stops growing
-  once held-out PSNR stops improving (``strategy="adc"``: INRIA's clone/split, one per 8
-  pixels; the command line's choice for the caustic modes), SH degree raised only when it
-  helps held-out views, stop on a held-out plateau, and end with the model that scored best
-  on the held-out photos (measured in benchmarks/RESULTS.md);
+* ``default``: coarse to fine, density control :data:`DEFAULT_STRATEGY` (INRIA's clone/split
+  under a budget of one Gaussian per 8 training pixels that stops growing once held-out PSNR
+  stops improving; ``strategy="mcmc"``: 3DGS-MCMC, Gaussians below opacity 0.1 relocated,
+  growth by opacity, one per 36 pixels), SH degree raised only when it helps held-out views,
+  stop on a held-out plateau, and end with the model that scored best on the held-out photos
+  (measured in benchmarks/RESULTS.md);
 * ``vanilla``: INRIA's schedule: 30k iterations, densify every 100 from 500 to 15k, opacity
   reset every 3k, SH degree +1 every 1k.
 """
@@ -16,6 +16,24 @@ from dataclasses import dataclass, replace
 from typing import Optional
 
 from ..errors import RecGSError
+
+
+#: The default preset's settings that go with each density control (benchmarks/RESULTS.md:
+#: training-quality-vs-size, training-relocation-five-minutes): 3DGS-MCMC's regularisers,
+#: relocation below opacity 0.1 (the paper's 0.005 left the budget on faint Gaussians: +0.27
+#: and +0.51 dB at 59,733 Gaussians after 3000 steps, two seeds, and 8 % less time a step;
+#: nerfstudio culls below 0.1 too) and one Gaussian per 6x6 block of training pixels, or
+#: INRIA's clone/split with one per 8 pixels.
+DENSITY_DEFAULTS = {
+    "mcmc": dict(strategy="mcmc", opacity_reg=0.01, scale_reg=0.01, pixels_per_gaussian=36.0, relocate_opacity=0.1),
+    "adc": dict(strategy="adc", opacity_reg=0.0, scale_reg=0.0, pixels_per_gaussian=8.0),
+}
+#: The density control of every mode unless asked otherwise: INRIA's clone/split. The caustic
+#: methods need its sharper model (on the sample, 4 minutes, recgs: caustic-free images 23.61 dB
+#: against MCMC's 21.88), and plain 3DGS scores higher with it too: 5 minutes on clean photos,
+#: +2.0 dB held-out on the 24-photo sample and +3.0 and +3.5 dB on a 144-frame dive survey
+#: (benchmarks/RESULTS.md#training-density-default).
+DEFAULT_STRATEGY = "adc"
 
 
 @dataclass
@@ -48,7 +66,7 @@ class TrainConfig:
     densify_every: int = 100
     densify_grad_threshold: float = 2e-4
     opacity_reset_every: int = 3000
-    strategy: str = "adc"                # "adc": clone/split by screen gradient (INRIA) | "mcmc": relocate dead, grow by opacity
+    strategy: str = DEFAULT_STRATEGY     # "adc": clone/split by screen gradient (INRIA) | "mcmc": 3DGS-MCMC
     opacity_reg: float = 0.0             # loss + this * mean opacity (3DGS-MCMC: 0.01)
     scale_reg: float = 0.0               # loss + this * mean scale / scene extent (3DGS-MCMC: 0.01, unnormalised)
     mcmc_draw: str = "opacity"           # mcmc: draw sources by "opacity" (3DGS-MCMC) or "gradient" (opacity x screen gradient)
@@ -94,8 +112,8 @@ class TrainConfig:
             raise RecGSError(f"the time limit must be a number of minutes above 0, got {self.max_minutes}")
         if not 0 < self.relocate_opacity < 1:
             raise RecGSError(f"relocate_opacity must be between 0 and 1, got {self.relocate_opacity}")
-        if self.strategy not in ("adc", "mcmc"):
-            raise RecGSError(f"unknown density strategy {self.strategy!r} (choose adc or mcmc)")
+        if self.strategy not in DENSITY_DEFAULTS:
+            raise RecGSError(f"unknown density strategy {self.strategy!r} (choose {' or '.join(DENSITY_DEFAULTS)})")
         if self.holdout_every < 0:
             raise RecGSError(f"holdout every must be 0 (hold out none) or a positive number, got {self.holdout_every}")
         if not 0 <= self.seed < 2 ** 64:   # what numpy's and torch's generators take
@@ -112,19 +130,7 @@ def preset(name: str, **overrides) -> TrainConfig:
                           densify_every=100, opacity_reset_every=0, pyramid=((300, 2),),
                           eval_every=250, plateau_patience=4, growth_patience=2, sh_policy="probation",
                           growth_rate=0.25, keep_best=True,
-                          **DENSITY_DEFAULTS.get(overrides.get("strategy") or "mcmc", {}))
+                          **DENSITY_DEFAULTS.get(overrides.get("strategy") or DEFAULT_STRATEGY, {}))
     else:
         raise RecGSError(f"unknown preset {name!r} (choose default or vanilla)")
     return replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
-
-
-#: The default preset's settings that go with each density control (benchmarks/RESULTS.md:
-#: training-quality-vs-size, training-relocation-five-minutes): 3DGS-MCMC's regularisers,
-#: relocation below opacity 0.1 (the paper's 0.005 left the budget on faint Gaussians: +0.27
-#: and +0.51 dB at 59,733 Gaussians after 3000 steps, two seeds, and 8 % less time a step;
-#: nerfstudio culls below 0.1 too) and one Gaussian per 6x6 block of training pixels, or
-#: INRIA's clone/split with one per 8 pixels.
-DENSITY_DEFAULTS = {
-    "mcmc": dict(strategy="mcmc", opacity_reg=0.01, scale_reg=0.01, pixels_per_gaussian=36.0, relocate_opacity=0.1),
-    "adc": dict(strategy="adc", opacity_reg=0.0, scale_reg=0.0, pixels_per_gaussian=8.0),
-}
