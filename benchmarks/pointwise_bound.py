@@ -8,7 +8,7 @@ moving between shots). A colour estimator that looks at one point at a time (the
 views, which an L2 fit makes; the median, which 3DGS's L1 loss makes; the minimum, the lower
 envelope; a soft minimum) sees only the n samples ``g_v``, and a survey-wide gain restore can
 fix only a common scale. This script draws the gains from the survey generator's own caustic
-patterns (tools/make_survey.py: the three kinds of the caustic benchmark plus the sample's), at
+patterns (tools/survey_light.py: the three kinds of the caustic benchmark plus the sample's), at
 random points and random shots (each shot has its own random offset, as in a survey), applies
 each estimator, restores the best common scale (least squares), and prints the relative RMS
 error ``rms(est / scale - 1)``: the part of the colour error no per-point method avoids.
@@ -28,7 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 
-from make_survey import caustic_gain  # noqa: E402
+from survey_light import caustic_gain  # noqa: E402
 
 #: (name, pattern, strength, tile (m), blur (m)): bench_caustics.py's kinds and the sample's.
 PATTERNS = [

@@ -1,4 +1,5 @@
-"""Tests for tools/make_survey.py (synthetic seafloor survey generator).
+"""Tests for tools/make_survey.py (synthetic seafloor survey generator) and its caustic model
+(tools/survey_light.py).
 
 The caustic maths test is fast (numpy only). The end-to-end test renders a tiny survey with
 Blender (bpy) and is marked ``slow``.
@@ -27,13 +28,14 @@ def _load_module():
 
 
 ms = _load_module()
+import survey_light as light  # noqa: E402  (make_survey puts tools/ on sys.path)
 
 
-@pytest.mark.parametrize("kind", ms.CAUSTIC_PATTERNS)
+@pytest.mark.parametrize("kind", light.CAUSTIC_PATTERNS)
 def test_caustic_gain_maths(kind):
     res, seed = 64, 4
-    shots = ms.caustic_shots(3, seed=seed, dt=1.0)
-    gains = [ms.caustic_gain(kind, res, s["time_s"], s["offset"], seed=seed, strength=0.6) for s in shots]
+    shots = light.caustic_shots(3, seed=seed, dt=1.0)
+    gains = [light.caustic_gain(kind, res, s["time_s"], s["offset"], seed=seed, strength=0.6) for s in shots]
     for g in gains:
         assert g.dtype == np.float32 and g.shape == (res, res)
         assert abs(g.astype(np.float64).mean() - 1.0) < 1e-6      # redistributes light, adds none
@@ -43,19 +45,19 @@ def test_caustic_gain_maths(kind):
     assert not np.allclose(gains[0], gains[1], atol=1e-3)
     assert not np.allclose(gains[1], gains[2], atol=1e-3)
     # deterministic
-    again = ms.caustic_gain(kind, res, shots[1]["time_s"], shots[1]["offset"], seed=seed, strength=0.6)
+    again = light.caustic_gain(kind, res, shots[1]["time_s"], shots[1]["offset"], seed=seed, strength=0.6)
     assert np.array_equal(again, gains[1])
     # full strength still non-negative with mean 1
-    full = ms.caustic_gain(kind, res, 0.5, (0.1, 0.7), seed=seed, strength=1.0)
+    full = light.caustic_gain(kind, res, 0.5, (0.1, 0.7), seed=seed, strength=1.0)
     assert full.min() >= 0.0 and abs(full.astype(np.float64).mean() - 1.0) < 1e-6
     # strength 0: no caustics at all
-    assert np.array_equal(ms.caustic_gain(kind, res, 0.5, (0.1, 0.7), seed=seed, strength=0.0),
+    assert np.array_equal(light.caustic_gain(kind, res, 0.5, (0.1, 0.7), seed=seed, strength=0.0),
                           np.ones((res, res), np.float32))
     with pytest.raises(ValueError):
-        ms.caustic_gain(kind, res, 0.0, strength=1.5)
+        light.caustic_gain(kind, res, 0.0, strength=1.5)
     # the texture tiles: an offset of whole tiles gives the same pattern
-    a = ms.caustic_pattern(kind, res, 0.3, (0.25, 0.5), seed)
-    b = ms.caustic_pattern(kind, res, 0.3, (1.25, -0.5), seed)
+    a = light.caustic_pattern(kind, res, 0.3, (0.25, 0.5), seed)
+    b = light.caustic_pattern(kind, res, 0.3, (1.25, -0.5), seed)
     assert np.allclose(a, b, atol=1e-6)
     assert abs(a.mean() - 1.0) < 1e-9 and a.min() >= 0.0
 
