@@ -14,11 +14,11 @@ Commands
 ``render MODEL.ply SCENE_DIR --out DIR [--names a.png,b.png]``
     Renders a model from the survey's cameras (PNG and float EXR) and reports PSNR.
 ``sfm PHOTO_DIR --out SCENE_DIR [--link] [--overwrite]``
-    Structure from motion with pycolmap (``recgs_addon.core.io.sfm``): copies (or links) the
+    Structure from motion with pycolmap (``recgs_addon.core.capture.sfm``): copies (or links) the
     photos to SCENE_DIR/images and writes the COLMAP model to SCENE_DIR/sparse/0, ready for
     ``import`` and ``train``. Progress as JSON lines, like ``train``.
 ``video CLIP --out SURVEY [--frames N | --every S] [--max-side PX] [--format jpg|png] [--overwrite]``
-    A video clip into a survey (``recgs_addon.core.io.video``): the sharpest frame of each
+    A video clip into a survey (``recgs_addon.core.capture.video``): the sharpest frame of each
     window of time, near-duplicates and dark frames left out, written to SURVEY/images with
     their time stamps in SURVEY/frames.json; then SfM with sequential matching and one shared
     camera into SURVEY/sparse/0. Progress as JSON lines (phases ``frames``, ``features``,
@@ -88,8 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def add_video_arguments(p: argparse.ArgumentParser) -> None:
-    from .core.io.frame_choice import DEFAULT_FRAMES
-    from .core.io.video import DEFAULT_MAX_SIDE, IMAGE_FORMATS, JPEG_QUALITY
+    from .core.capture.frame_choice import DEFAULT_FRAMES
+    from .core.capture.video import DEFAULT_MAX_SIDE, IMAGE_FORMATS, JPEG_QUALITY
 
     p.add_argument("clip", type=Path, help="video file (MP4, MOV, MKV, ...)")
     p.add_argument("--out", type=Path, required=True, help="survey folder to write (images/, frames.json, sparse/0)")
@@ -285,7 +285,7 @@ def cmd_sfm(args) -> int:
     image_dir = scene / "images"
     model_dir = scene / "sparse" / "0"
     try:
-        from .core.io.sfm import SfmOptions, list_images, reconstruct
+        from .core.capture.sfm import SfmOptions, list_images, reconstruct
 
         names = list_images(args.photo_dir)
         if model_dir.exists() and not args.overwrite:
@@ -379,8 +379,8 @@ def cmd_video(args) -> int:
         return _fail(f"the video command needs the Python package '{exc.name}' "
                      + ("(PyAV: install the training engine, or pip install av==18.1.0)" if exc.name == "av"
                         else "(pip install pycolmap)"))
-    from .core.io.sfm import SfmOptions, reconstruct
-    from .core.io.video import VideoOptions, existing_frames, import_frames, plan_windows, probe
+    from .core.capture.sfm import SfmOptions, reconstruct
+    from .core.capture.video import VideoOptions, existing_frames, import_frames, plan_windows, probe
 
     if args.every is None and args.frames < 1:
         return _fail(f"--frames must be at least 1, got {args.frames}")

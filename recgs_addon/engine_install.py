@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
 
-#: PyAV: video decoding for Import Video (``python -m recgs_addon video``, core/io/video.py);
+#: PyAV: video decoding for Import Video (``python -m recgs_addon video``, core/capture/video.py);
 #: its wheels carry FFmpeg (Python 3.9+ stable ABI: one wheel serves Blender 4.2-5.2's Pythons).
 PYAV_REQUIREMENT = "av==18.1.0"
 #: What the engine always holds. torch 2.13.0 is the version the trainer is tested with.

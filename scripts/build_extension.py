@@ -59,7 +59,7 @@ PINS = {
 #: pycolmap publishes macOS wheels for macOS 14+ on arm64 only since 3.13, and none for Intel
 #: Macs after 3.12.5 (macOS 13+), measured with `pip download` on 2026-11-24. 3.12.5 (Linux
 #: wheel, same sources) reads binary/text models and undistorts OPENCV/SIMPLE_RADIAL surveys
-#: exactly as 4.2.1 does through core/io/colmap.py; its SfM (sfm.py) is not yet checked.
+#: exactly as 4.2.1 does through core/io/colmap.py; its SfM (core/capture/sfm.py) is not yet checked.
 OVERRIDES: dict[tuple[str, str], tuple[str, tuple[str, ...]]] = {
     ("pycolmap", "macos-arm64"): ("4.2.1", ("macosx_14_0_arm64",)),
     ("pycolmap", "macos-x64"): ("3.12.5", ("macosx_13_0_x86_64",)),

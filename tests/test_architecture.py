@@ -18,6 +18,7 @@ LAYERS = [
     ("core.errors",),
     ("core.model",),
     ("core.io",),
+    ("core.capture",),
     ("core.render",),
     ("core.train",),
     ("core.caustics",),

@@ -127,7 +127,7 @@ def test_tiny_survey_end_to_end(tmp_path):
 
 
 def test_run_sfm_uses_core_sfm(tmp_path):
-    """--sfm goes through recgs_addon.core.io.sfm: six sample views register, poses match the truth."""
+    """--sfm goes through recgs_addon.core.capture.sfm: six sample views register, poses match the truth."""
     pycolmap = pytest.importorskip("pycolmap")
     sample = ROOT / "data" / "sample"
     (tmp_path / "images").mkdir()

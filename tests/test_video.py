@@ -22,7 +22,7 @@ av = pytest.importorskip("av")
 pycolmap = pytest.importorskip("pycolmap")
 
 from recgs_addon.core.errors import Cancelled, VideoError  # noqa: E402
-from recgs_addon.core.io import frame_choice as fc  # noqa: E402
+from recgs_addon.core.capture import frame_choice as fc  # noqa: E402
 from benchmarks.bench_video import umeyama  # noqa: E402
 
 SAMPLE = ROOT / "data" / "sample"
@@ -266,7 +266,7 @@ def test_a_stopped_import_continues_where_it_stopped(clip, tmp_path):
 
 
 def test_a_stopped_frame_choice_leaves_nothing(clip, tmp_path):
-    from recgs_addon.core.io.video import import_frames
+    from recgs_addon.core.capture.video import import_frames
 
     calls = []
 
@@ -341,7 +341,7 @@ def _assert_clean_failure_sfm(r, events, path, out):
 
 
 def test_probe_describes_a_clip(clip):
-    from recgs_addon.core.io.video import probe
+    from recgs_addon.core.capture.video import probe
 
     info = probe(clip[0])
     assert (info.codec, info.width, info.height, info.frames) == ("h264", 256, 192, len(clip[1]))

@@ -171,11 +171,11 @@ def reprojection_errors(rec) -> np.ndarray:
 
 
 def run_sfm(out: Path, true_rec, threads: int) -> dict:
-    """pycolmap SfM (``recgs_addon.core.io.sfm``) on images/ -> sfm/0; compare with the truth."""
+    """pycolmap SfM (``recgs_addon.core.capture.sfm``) on images/ -> sfm/0; compare with the truth."""
     import pycolmap
 
     from recgs_addon.core.errors import SceneError
-    from recgs_addon.core.io.sfm import SfmOptions, reconstruct
+    from recgs_addon.core.capture.sfm import SfmOptions, reconstruct
 
     t0 = time.time()
     shutil.rmtree(out / "sfm", ignore_errors=True)

@@ -10,8 +10,8 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from ..core.caustics.config import CAUSTIC_MODES, MODE_INFO
-from ..core.io.frame_choice import DEFAULT_FRAMES, MIN_FRAMES
-from ..core.io.video import DEFAULT_MAX_SIDE
+from ..core.capture.frame_choice import DEFAULT_FRAMES, MIN_FRAMES
+from ..core.capture.video import DEFAULT_MAX_SIDE
 
 #: Folder settings may be relative to the .blend ("//..."); Blender 4.5+ wants that declared.
 _PATH = {"options": {"PATH_SUPPORTS_BLEND_RELATIVE"}} if bpy.app.version >= (4, 5, 0) else {}

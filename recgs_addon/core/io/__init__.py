@@ -1,3 +1,3 @@
 """Reading and writing things: COLMAP surveys (``colmap``), images (``images``, OpenImageIO),
-3DGS PLY files (``ply``), structure from motion (``sfm``, pycolmap) and baking a similarity
+3DGS PLY files (``ply``), a survey's frame times (``frames``) and baking a similarity
 transform into Gaussians (``transform``). No torch."""

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from ..errors import Cancelled, SceneError
-from .atomic import atomic_path
+from ..io.atomic import atomic_path
 
 #: File endings taken as photos (case-insensitive).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")

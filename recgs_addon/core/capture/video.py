@@ -30,9 +30,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..errors import Cancelled, VideoError
+from ..io.atomic import atomic_path, make_folder
+from ..io.images import write_image
 from . import frame_choice as fc
-from .atomic import atomic_path, make_folder
-from .images import write_image
 
 #: Suffixes offered by file dialogs (FFmpeg reads many more; the content decides, not the name).
 VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".m4v", ".avi", ".mts", ".webm")
