@@ -45,8 +45,9 @@ from typing import Callable, Optional
 import torch
 
 #: Sources whose change invalidates the warm marker (what the compiled graphs are made of).
-_SOURCES = ("render/projection.py", "render/rasterizer.py", "render/rowgrads.py", "model/sh.py",
-            "train/compiling.py")
+_SOURCES = ("render/projection.py", "render/rasterizer.py", "render/chunks.py", "render/kernels.py",
+            "render/tiles.py", "render/composite.py", "render/numba_path.py", "render/rowgrads.py",
+            "model/sh.py", "train/compiling.py")
 _CORE = Path(__file__).resolve().parents[1]
 
 
@@ -146,7 +147,8 @@ def warm_up(max_degree: int = 3) -> None:
 
 
 #: Sources whose change invalidates numba's warm marker (what its kernels are made of).
-_NUMBA_SOURCES = ("render/_numba_impl.py", "render/numba_kernels.py", "train/_numba_ssim.py", "train/numba_ssim.py")
+_NUMBA_SOURCES = ("render/_numba_impl.py", "render/_numba_project.py", "render/_numba_tiles.py",
+                  "render/numba_kernels.py", "train/_numba_ssim.py", "train/numba_ssim.py")
 
 
 def numba_dir() -> Path:
