@@ -1,9 +1,11 @@
 """The 3D Gaussian Splatting optimisation loop on the CPU (or any torch device), built to
 model only what the scene needs.
 
-:class:`Trainer` runs steps, density control (``density.py``) and evaluation on held-out
-views, and saves/restores its whole state (parameters, Adam moments, gradient statistics,
-random generators) so that a resumed run continues exactly where the checkpoint was taken.
+:class:`Trainer` runs steps, density control (``density_control.py``, its operations in
+``density.py``) and evaluation on held-out views (``evaluation.py``: keep-best and the stopping
+rules), keeps the run's clock and reports progress (``progress.py``), and saves/restores its
+whole state (parameters, Adam moments, gradient statistics, random generators) so that a
+resumed run continues exactly where the checkpoint was taken.
 What each step fits comes from its :class:`~.objective.Objective` (the photos, unless a
 caustic method in core/caustics/ says otherwise). Settings: ``config.py``; the survey as
 the trainer sees it: ``data.py``.
@@ -13,7 +15,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -30,30 +32,15 @@ from . import density, numba_ssim
 from .compiling import CompileSwitch
 from .config import TrainConfig
 from .data import TrainData, resolve_image_dir, view_tensors
-from .losses import psnr, ssim, training_loss
+from .density_control import DensityMixin
+from .evaluation import PLATEAU, EvaluationMixin  # noqa: F401 (PLATEAU re-exported)
+from .losses import training_loss
 from .objective import Objective
+from .progress import Progress, ProgressMixin
 
 
 PARAM_NAMES = ("means", "log_scales", "quats", "logit_opacities", "sh_dc", "sh_rest")
 
-
-@dataclass
-class Progress:
-    phase: str
-    iteration: int
-    loss: float
-    gaussians: int
-    sh_degree: int
-    elapsed: float
-    eta: Optional[float]
-    psnr_test: Optional[float] = None
-    ssim_test: Optional[float] = None
-    psnr_test_gt: Optional[float] = None   # against the survey's ground truth, where it has one
-    extra: dict = field(default_factory=dict)  # what a method driving the trainer adds (flat)
-
-
-#: Why a run without a time limit ends when held-out PSNR stops improving.
-PLATEAU = "held-out PSNR plateau"
 
 #: Consecutive steps with a non-finite loss after which a run stops (its last checkpoint,
 #: written before the trouble, stays as it was).
@@ -64,7 +51,7 @@ class TrainingDiverged(RecGSError):
     """NaN or Inf in the loss, the parameters or the optimiser's moments."""
 
 
-class Trainer:
+class Trainer(EvaluationMixin, DensityMixin, ProgressMixin):
     """One training run. ``run()`` until done or told to stop; ``state_dict()`` to checkpoint.
 
     What it fits is its :class:`~.objective.Objective` (``set_objective``): the photos by
@@ -321,256 +308,6 @@ class Trainer:
                         raise TrainingDiverged(f"training diverged: Adam's {key} of '{group['name']}' holds NaN/Inf "
                                                f"at step {self.step}")
 
-    def densifying(self) -> bool:
-        return self.step < self.cfg.densify_until and not self.growth_frozen
-
-    def _uses_gradient_stats(self) -> bool:
-        """Density control reads the accumulated screen gradients (clone/split, or MCMC
-        drawing by gradient); otherwise a step need not accumulate them."""
-        c = self.cfg
-        return c.strategy == "adc" or c.mcmc_draw == "gradient"
-
-    def _growth_room(self, n: int, unbounded: int) -> int:
-        """Gaussians density control may add to a model of ``n``: up to the budget (``unbounded``
-        without one), at most ``growth_rate`` of the model."""
-        room = (self.budget - n) if self.budget is not None else unbounded
-        if self.cfg.growth_rate > 0:
-            room = min(room, max(1, int(self.cfg.growth_rate * n)))
-        return room
-
-    def growth_over(self) -> bool:
-        """Density control adds no more Gaussians: growth frozen, past its last step, or the
-        model at its budget (within 1 %: pruning keeps it just below). The SH probation and
-        the plateau stop wait for this, not for the end of the densification window: a model
-        that reaches its budget early should not train its remaining minutes at SH degree 0."""
-        n = int(self.params["means"].shape[0])
-        return (self.growth_frozen or not self.densifying()
-                or (self.budget is not None and self.step > self.cfg.densify_from and n >= 0.99 * self.budget))
-
-    def densify(self) -> dict:
-        """Clone small and split large Gaussians with high screen gradient, within the budget;
-        prune transparent, huge and never-visible ones."""
-        c = self.cfg
-        if c.strategy == "mcmc":
-            return self._relocate_and_grow()
-        p = self.params
-        n0 = p["means"].shape[0]
-        grads = self.stats.mean().to(self.device)
-        max_scale = p["log_scales"].detach().exp().max(1).values
-        high = grads >= c.densify_grad_threshold
-        clone = high & (max_scale <= density.PERCENT_DENSE * self.extent)
-        split = high & ~clone
-        room = self._growth_room(n0, unbounded=n0 * 10)
-        want = int(clone.sum() + split.sum())  # a split adds one net Gaussian
-        if want > max(room, 0):
-            cand = torch.nonzero(clone | split).squeeze(1)
-            keep = cand[torch.argsort(grads[cand], descending=True, stable=True)[: max(room, 0)]]
-            sel = torch.zeros_like(clone)
-            sel[keep] = True
-            clone &= sel
-            split &= sel
-        n_clone, n_split = int(clone.sum()), int(split.sum())
-        if n_clone:
-            density.append(p, self.optimizer, {n: v.detach()[clone] for n, v in p.items()})
-        if n_split:
-            children = density.split_values(p, torch.cat([split, torch.zeros(n_clone, dtype=torch.bool, device=self.device)]), self.gen)
-            density.append(p, self.optimizer, children)
-        n = p["means"].shape[0]
-        opac = torch.sigmoid(p["logit_opacities"].detach())
-        prune = opac < density.PRUNE_OPACITY
-        prune[:n0] |= split  # split originals are replaced by their children
-        if self.reset_done:
-            radius = torch.cat([self.stats.max_radius, torch.zeros(n - n0, dtype=torch.int32, device=self.device)])
-            big = p["log_scales"].detach().exp().max(1).values > density.PRUNE_WORLD_SCALE * self.extent
-            prune |= (radius > density.PRUNE_SCREEN_RADIUS) | big
-        if bool(prune.all()):
-            prune[torch.argmax(opac)] = False  # never prune everything (the backward needs one)
-        if prune.any():
-            density.remove(p, self.optimizer, ~prune)
-        self.stats = density.GradientStats.zeros(p["means"].shape[0], self.device)
-        return {"cloned": n_clone, "split": n_split, "pruned": int(prune.sum())}
-
-    def _relocate_and_grow(self) -> dict:
-        """3DGS-MCMC's density control: move dead Gaussians onto live ones, then add copies of
-        live ones (drawn by opacity) up to the budget, at most ``growth_rate`` of the model."""
-        c, p = self.cfg, self.params
-        score = self.stats.mean().to(self.device) if c.mcmc_draw == "gradient" else None
-        moved = density.relocate(p, self.optimizer, self.gen, dead_opacity=c.relocate_opacity, score=score)
-        n = p["means"].shape[0]
-        added = density.grow(p, self.optimizer, self._growth_room(n, unbounded=n), self.gen, score=score,
-                             dead_opacity=c.relocate_opacity)
-        self.stats = density.GradientStats.zeros(p["means"].shape[0], self.device)
-        return {"relocated": moved, "added": added}
-
-    # --- snapshots (a method that keeps or restores a model uses these) -----------------
-    def snapshot(self) -> dict:
-        """A copy of the model: parameters and the active SH degree."""
-        return {"params": {n: v.detach().clone() for n, v in self.params.items()}, "sh_degree": self.sh_degree}
-
-    @contextlib.contextmanager
-    def using(self, snap: dict):
-        """Render and evaluate with a ``snapshot()``'s model for the ``with`` block (the
-        trainer's own parameters, optimiser and statistics untouched)."""
-        saved = self.params, self.sh_degree
-        self.params, self.sh_degree = snap["params"], snap["sh_degree"]
-        try:
-            yield self
-        finally:
-            self.params, self.sh_degree = saved
-
-    def restore(self, snap: dict) -> None:
-        """Go back to a ``snapshot()``: its parameters with fresh Adam moments and gradient
-        statistics, and its SH degree."""
-        self.params = {n: torch.nn.Parameter(v.detach().clone().to(self.device)) for n, v in snap["params"].items()}
-        self.optimizer = self._make_optimizer()
-        self.stats = density.GradientStats.zeros(self.params["means"].shape[0], self.device)
-        self.sh_degree = snap["sh_degree"]
-
-    def restart_plateau(self, forget_best: bool = False) -> None:
-        """Start counting evaluations without gain afresh (``forget_best``: and the best score
-        too): a driving method does this when what the trainer fits has changed."""
-        self.since_best = 0
-        if forget_best:
-            self.best_psnr = -math.inf
-
-    # --- evaluation ---------------------------------------------------------------------
-    @torch.no_grad()
-    def render_output(self, index: int):
-        """The whole :class:`~..render.rasterizer.RenderOutput` (rgb, alpha, depth, ...) of
-        camera ``index`` at the training resolution."""
-        t = time.perf_counter()
-        cam, _ = self.data.view(index, 1)
-        viewmat, K = view_tensors(cam, self.device)
-        p = self.params
-        out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
-                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                      background=torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device),
-                      compiled=self.compiler.compiled())
-        dt = time.perf_counter() - t
-        self._render_s = dt if self._render_s is None else 0.8 * self._render_s + 0.2 * dt
-        return out
-
-    def render_view(self, index: int) -> torch.Tensor:
-        """(H, W, 3) render of camera ``index`` at the training resolution (not clamped)."""
-        return self.render_output(index).rgb
-
-    def heldout_ids(self, ids: Optional[list[int]] = None) -> list[int]:
-        """The held-out views a score is taken on (``ids``, default all, cut to ``eval_views``)."""
-        ids = self.data.test_ids if ids is None else ids
-        return ids[: self.cfg.eval_views] if self.cfg.eval_views else ids
-
-    @torch.no_grad()
-    def heldout_psnr(self) -> Optional[float]:
-        """Mean PSNR of the held-out renders against the held-out photos as captured (moving
-        light and all), or None without held-out views. A held-out view's caustics are its
-        own, so no model predicts them: they add the same error to every model, and the model
-        closer to the caustic-free scene scores higher."""
-        ids = self.heldout_ids()
-        if not ids:
-            return None
-        return float(sum(psnr(self.render_view(i).clamp(0, 1), self.data.view(i, 1)[1]) for i in ids) / len(ids))
-
-    @torch.no_grad()
-    def evaluate(self, ids: Optional[list[int]] = None) -> dict:
-        """Mean PSNR (dB) and SSIM over held-out views at the training resolution: ``psnr`` /
-        ``ssim`` against the held-out images (what the run decides on), ``psnr_gt`` /
-        ``ssim_gt`` against the ground truth where the survey has one, and ``psnr_captured``
-        against the held-out photos as captured (what ``keep_best`` decides on)."""
-        ids = self.heldout_ids(ids)
-        if not ids:
-            return {}
-        ps, ss, pg, sg, pc = [], [], [], [], []
-        for i in ids:
-            rgb = self.render_view(i).clamp(0, 1)
-            photo = self.data.view(i, 1)[1]
-            ref = self.objective.reference(i, photo, rgb)
-            ps.append(psnr(rgb, ref))
-            pc.append(ps[-1] if ref is photo else psnr(rgb, photo))
-            ss.append(float(ssim(rgb, ref)))
-            gt = self.data.gt_view(i)
-            if gt is not None:
-                pg.append(psnr(rgb, gt))
-                sg.append(float(ssim(rgb, gt)))
-        out = {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "psnr_captured": float(np.mean(pc))}
-        if pg:
-            out.update(psnr_gt=float(np.mean(pg)), ssim_gt=float(np.mean(sg)))
-        return out
-
-    def _after_eval(self, metrics: dict) -> None:
-        """Growth freeze (budget auto), SH probation and the plateau stop, from held-out PSNR."""
-        c = self.cfg
-        value = metrics.get("psnr")
-        if value is None:
-            return
-        self.history.append({"iteration": self.step, "psnr": value, "ssim": metrics["ssim"],
-                             **{k: metrics[k] for k in ("psnr_gt", "ssim_gt", "psnr_captured") if k in metrics},
-                             "gaussians": int(self.params["means"].shape[0]), "sh_degree": self.sh_degree,
-                             "elapsed": round(self.elapsed, 2), "phase": self.phase})
-        if c.keep_best:
-            self._consider_best(metrics[self.best_by])
-        if value > self.best_psnr + c.plateau_min_gain:
-            self.best_psnr, self.since_best = value, 0
-        else:
-            self.since_best += 1
-        # growth: with budget "auto", stop adding Gaussians once held-out PSNR stalls
-        full_res = [h for h in self.history if h["iteration"] >= self._full_res_from()]
-        if (c.budget is None and not self.growth_frozen and self.step >= c.densify_from
-                and len(full_res) > c.growth_patience):
-            recent = [h["psnr"] for h in full_res[-(c.growth_patience + 1):]]
-            if max(recent[1:]) < recent[0] + 5 * c.plateau_min_gain:
-                self.growth_frozen = True
-                self.budget = int(self.params["means"].shape[0])
-        # SH degree: try one more degree once growth has settled; keep it only if it helps
-        if c.sh_policy == "probation" and not self.sh_state["done"] and self.growth_over():
-            trial = self.sh_state["trial"]
-            if trial is None and self.since_best >= 1:
-                self.sh_state["trial"] = {"from": self.sh_degree, "psnr": self.best_psnr, "step": self.step}
-                self.sh_degree += 1
-                self.since_best = 0
-            elif trial is not None and self.step - trial["step"] >= c.sh_probation:
-                if self.best_psnr < trial["psnr"] + c.sh_min_gain:  # did not help: revert
-                    self.sh_degree = trial["from"]
-                    k = num_sh_coeffs(self.sh_degree)
-                    with torch.no_grad():
-                        self.params["sh_rest"][:, k - 1:] = 0
-                    self.sh_state["done"] = True
-                elif self.sh_degree >= c.sh_degree:
-                    self.sh_state["done"] = True
-                self.sh_state["trial"] = None
-                self.since_best = 0
-        if (c.plateau_patience and self.since_best >= c.plateau_patience
-                and self.growth_over() and self.sh_state["done"]
-                and self.sh_state["trial"] is None):
-            if self.plateau_step is None:
-                self.plateau_step = self.step
-            # with a time limit the run uses its time (the best model is kept, so steps that
-            # do not help cost nothing); without one a plateau ends it
-            if c.max_minutes is None:
-                self.done_reason = PLATEAU
-
-    def _consider_best(self, score: float) -> None:
-        """Remember the model if it scores best so far on the held-out photos as captured.
-        Evaluations within half a densification interval after a densification are not
-        considered: new Gaussians have not yet settled."""
-        c = self.cfg
-        if self.last_densify >= 0 and self.step - self.last_densify < c.densify_every // 2:
-            return
-        if self.best is None or score > self.best["score"]:
-            self.best = {"score": score, "step": self.step, **self.snapshot()}
-
-    def restore_best(self) -> Optional[int]:
-        """``keep_best``: at the end of a run, go back to the best model unless the current one
-        scores as well; returns (and records in ``best_step``) the step the model was taken
-        at, or None when nothing changed."""
-        if not self.cfg.keep_best or self.best is None or self.best["step"] == self.step:
-            return None
-        score_now = self.heldout_psnr() if self.best_by == "psnr_captured" else self.evaluate().get(self.best_by)
-        if score_now is not None and score_now >= self.best["score"]:
-            return None
-        self.restore(self.best)
-        self.best_step = self.best["step"]
-        return self.best_step
-
     # --- the loop -----------------------------------------------------------------------
     def run(self, on_progress: Optional[Callable[[Progress], None]] = None,
             should_stop: Optional[Callable[[], bool]] = None,
@@ -639,50 +376,6 @@ class Trainer:
             if on_checkpoint and time.perf_counter() - self._last_checkpoint >= checkpoint_every_s:
                 on_checkpoint(self)
                 self._last_checkpoint = time.perf_counter()
-
-    def finishing_reserve(self) -> float:
-        """Seconds the time limit keeps for what follows training: ``finishing_renders()`` at the
-        latest render time measured (a held-out evaluation measures it), at most a quarter of
-        the limit. The whole job then ends near its limit, finishing included."""
-        if self._render_s is None or self.cfg.max_minutes is None:
-            return 0.0
-        return min(self.finishing_renders() * self._render_s, 15.0 * self.cfg.max_minutes)
-
-    def start_clock(self, origin: Optional[float] = None) -> None:
-        """Count the run's time from ``origin`` (a ``time.perf_counter()`` reading, default now;
-        a job passes the moment its command started), on top of what a resumed run had spent.
-        From then on every second counts against the time limit: training, and the renders,
-        estimates and scores between training segments."""
-        self._clock = (time.perf_counter() if origin is None else origin) - self.elapsed
-
-    def schedule_elapsed(self) -> float:
-        """Seconds of training as the schedule counts them: wall clock less the compiler's
-        start-up stall (a time limit itself stays wall clock)."""
-        return max(0.0, self.elapsed - self.compile_stall)
-
-    def finish(self, on_progress: Optional[Callable[[Progress], None]] = None, **extra) -> None:
-        """The last progress report of a run (phase ``done``)."""
-        if on_progress:
-            on_progress(self.progress(self._last_loss, {}, "done", **extra))
-
-    @property
-    def phase(self) -> str:
-        if self.label is not None:
-            return self.label
-        return "densify" if self.densifying() else "refine"
-
-    def progress(self, loss, metrics, phase=None, **extra) -> Progress:
-        c = self.cfg
-        eta = None
-        if self.step:
-            per = self.elapsed / self.step
-            eta = per * (c.iterations - self.step)
-            if c.max_minutes is not None:
-                eta = min(eta, max(0.0, 60 * c.max_minutes - self.elapsed))
-        phase = phase or self.phase
-        return Progress(phase, self.step, float(loss), int(self.params["means"].shape[0]), self.sh_degree,
-                        round(self.elapsed, 2), None if eta is None else round(eta, 1),
-                        metrics.get("psnr"), metrics.get("ssim"), metrics.get("psnr_gt"), extra)
 
     # --- checkpoints ----------------------------------------------------------------------
     def state_dict(self) -> dict:

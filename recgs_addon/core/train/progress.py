@@ -1,0 +1,73 @@
+"""Progress reports and the run's clock: elapsed time as the time limit counts it, the
+reserve kept for the renders after training, the schedule's time and the ETA.
+
+:class:`ProgressMixin` is a part of :class:`~.trainer.Trainer` (its ``cfg``, ``elapsed``,
+``step`` and ``label``)."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+
+@dataclass
+class Progress:
+    phase: str
+    iteration: int
+    loss: float
+    gaussians: int
+    sh_degree: int
+    elapsed: float
+    eta: Optional[float]
+    psnr_test: Optional[float] = None
+    ssim_test: Optional[float] = None
+    psnr_test_gt: Optional[float] = None   # against the survey's ground truth, where it has one
+    extra: dict = field(default_factory=dict)  # what a method driving the trainer adds (flat)
+
+
+class ProgressMixin:
+    """The trainer's clock and progress reports (see the module's docstring)."""
+
+    def finishing_reserve(self) -> float:
+        """Seconds the time limit keeps for what follows training: ``finishing_renders()`` at the
+        latest render time measured (a held-out evaluation measures it), at most a quarter of
+        the limit. The whole job then ends near its limit, finishing included."""
+        if self._render_s is None or self.cfg.max_minutes is None:
+            return 0.0
+        return min(self.finishing_renders() * self._render_s, 15.0 * self.cfg.max_minutes)
+
+    def start_clock(self, origin: Optional[float] = None) -> None:
+        """Count the run's time from ``origin`` (a ``time.perf_counter()`` reading, default now;
+        a job passes the moment its command started), on top of what a resumed run had spent.
+        From then on every second counts against the time limit: training, and the renders,
+        estimates and scores between training segments."""
+        self._clock = (time.perf_counter() if origin is None else origin) - self.elapsed
+
+    def schedule_elapsed(self) -> float:
+        """Seconds of training as the schedule counts them: wall clock less the compiler's
+        start-up stall (a time limit itself stays wall clock)."""
+        return max(0.0, self.elapsed - self.compile_stall)
+
+    def finish(self, on_progress: Optional[Callable[[Progress], None]] = None, **extra) -> None:
+        """The last progress report of a run (phase ``done``)."""
+        if on_progress:
+            on_progress(self.progress(self._last_loss, {}, "done", **extra))
+
+    @property
+    def phase(self) -> str:
+        if self.label is not None:
+            return self.label
+        return "densify" if self.densifying() else "refine"
+
+    def progress(self, loss, metrics, phase=None, **extra) -> Progress:
+        c = self.cfg
+        eta = None
+        if self.step:
+            per = self.elapsed / self.step
+            eta = per * (c.iterations - self.step)
+            if c.max_minutes is not None:
+                eta = min(eta, max(0.0, 60 * c.max_minutes - self.elapsed))
+        phase = phase or self.phase
+        return Progress(phase, self.step, float(loss), int(self.params["means"].shape[0]), self.sh_degree,
+                        round(self.elapsed, 2), None if eta is None else round(eta, 1),
+                        metrics.get("psnr"), metrics.get("ssim"), metrics.get("psnr_gt"), extra)
