@@ -208,8 +208,9 @@ def test_close_stops_a_running_warm_up(cache, monkeypatch):
 @pytest.mark.slow
 def test_real_warm_up_covers_a_training_run(tmp_path):
     """The warm-up subprocess fills a fresh cache; a run after it compiles from its first step
-    and finds every graph of its training steps and evaluations in the cache (at most a couple
-    of small graphs of its own)."""
+    and finds every graph of its training steps and evaluations in the cache (at most a few
+    small graphs of its own: under the default clone/split, two at step 11 and one when the SH
+    degree rises, on the sample; none under MCMC)."""
     if compiling.find_compiler() is None:
         pytest.skip("no C++ compiler here")
     env = {"RECGS_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT),
@@ -234,7 +235,7 @@ def test_real_warm_up_covers_a_training_run(tmp_path):
                          capture_output=True, text=True).stdout.strip().splitlines()[-1]
     got = json.loads(out)
     assert got["state"] == "compiled"
-    assert got["hit"] >= 10 and got["miss"] <= 2, got
+    assert got["hit"] >= 10 and got["miss"] <= 3, got
 
 
 def test_warm_up_borrows_a_core_when_none_is_spare(cache, monkeypatch):
