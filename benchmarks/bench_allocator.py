@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def child(args) -> None:
-    from recgs_addon.runner import tune_allocator
+    from recgs_addon.commands.train import tune_allocator
     allocator = tune_allocator()
     import numpy as np
     import torch

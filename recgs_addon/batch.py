@@ -19,7 +19,6 @@ Ctrl-C cancels the job cleanly (checkpoint written) and still saves what there i
 """
 from __future__ import annotations
 
-import importlib
 import os
 import sys
 import time
@@ -29,20 +28,23 @@ if not __package__:  # run as a script: make the package importable (it is this 
     _here = Path(__file__).resolve().parent
     if str(_here.parent) not in sys.path:
         sys.path.insert(0, str(_here.parent))
-    PACKAGE = _here.name
-else:
-    PACKAGE = __package__
+    # Run as a script (python recgs_addon/batch.py, blender -b --python), this file has no
+    # package, so relative imports would fail. Naming its package here (PEP 366) makes the
+    # plain relative imports below, and those in the functions, resolve in it. The folder's own
+    # name, not "recgs_addon": an installed extension is imported under another name, hence
+    # relative imports only (tests/test_architecture.py).
+    __package__ = _here.name
 
-
-def _pkg(name: str):
-    return importlib.import_module(f"{PACKAGE}.{name}")
+from . import engine_install as ei  # noqa: E402  (after the package is made importable)
+from .commands.train import add_train_arguments  # noqa: E402
+from .core.errors import RecGSError  # noqa: E402
+from .core.io import atomic  # noqa: E402
 
 
 def use_installed_engine(bpy) -> "str | None":
     """Batch mode trains with the engine the add-on's *Install Training Engine* put in this
     user's extension folder (``<user>/extensions/.user/<repo>/recgs/engine/...``), unless
     ``RECGS_ENGINE_DIR`` names one or a Python with torch runs this. Returns the folder used."""
-    ei = _pkg("engine_install")
     if os.environ.get(ei.ENGINE_DIR_ENV):
         return os.environ[ei.ENGINE_DIR_ENV]
     try:
@@ -67,7 +69,7 @@ def _parser():
     import argparse
 
     p = argparse.ArgumentParser(prog="recgs_addon/batch.py", description=__doc__.split("\n\n")[0])
-    _pkg("runner").add_train_arguments(p)
+    add_train_arguments(p)
     return p
 
 
@@ -113,9 +115,9 @@ def main(argv=None) -> int:
     if engine:
         log(f"training engine: {engine}")
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    addon = _pkg("blender")
-    training = _pkg("blender.training")
-    properties = _pkg("blender.properties")
+    from . import blender as addon   # the Blender layer: only once bpy imports
+    from .blender import properties, training
+
     addon.register()
     try:
         extra = extra_train_args(parser, args, properties.SETTINGS_OPTIONS)
@@ -144,7 +146,7 @@ def _run(bpy, training, properties, args, extra: list[str], scene_dir: Path, out
     try:
         log(training.start_training(scene, obj, echo_stderr=True, extra_args=extra))
         log("job: " + " ".join(training.active_job().job.argv))
-    except (_pkg("core.errors").RecGSError, OSError, ValueError) as exc:  # WorkflowError included
+    except (RecGSError, OSError, ValueError) as exc:  # WorkflowError included
         return fail(str(exc))
     try:
         status = training.wait()
@@ -159,7 +161,7 @@ def _run(bpy, training, properties, args, extra: list[str], scene_dir: Path, out
         copied = _save_outputs(bpy, obj, out)
     except RuntimeError as exc:   # the export operator's error report
         return fail(str(exc).removeprefix("Error: ").strip())
-    except (_pkg("core.errors").RecGSError, OSError) as exc:
+    except (RecGSError, OSError) as exc:
         return fail(str(exc))
     log(f"{status.lower()}: {s.message}; wrote {out / 'scene.blend'}, {out / 'point_cloud.ply'}"
         + (f", {', '.join(copied)}" if copied else "") + f" in {time.perf_counter() - t0:.1f} s")
@@ -169,11 +171,12 @@ def _run(bpy, training, properties, args, extra: list[str], scene_dir: Path, out
 def _save_outputs(bpy, obj, out: Path) -> list[str]:
     """scene.blend, point_cloud.ply and the job's report and caustic-free images, each file
     written whole or not at all (core/io/atomic.py). Returns what was copied from the job."""
-    atomic = _pkg("core.io.atomic")
+    from .blender.blendfile import save_blend
+
     atomic.make_folder(out)
     bpy.context.scene.camera = bpy.context.scene.camera or next(
         (o for o in bpy.data.objects if o.type == "CAMERA"), None)
-    _pkg("blender.blendfile").save_blend(out / "scene.blend")
+    save_blend(out / "scene.blend")
     bpy.context.view_layer.objects.active = obj
     bpy.ops.recgs.export_ply(filepath=str(out / "point_cloud.ply"))
     job_out = out / "train"

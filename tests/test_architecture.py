@@ -14,6 +14,8 @@ PKG = ROOT / "recgs_addon"
 
 #: Layers, bottom first. A module may import from its own layer or any layer below it.
 #: ``core.errors`` is the base every layer shares. Everything under ``blender`` is one layer.
+#: A module is in the layer of the longest prefix that names it (``commands.scene``, which
+#: uses the Blender layer, sits above the rest of ``commands``).
 LAYERS = [
     ("core.errors",),
     ("core.model",),
@@ -23,9 +25,9 @@ LAYERS = [
     ("core.train",),
     ("core.caustics",),
     ("core.outputs",),
-    ("runner", "engine_install"),
+    ("commands", "commands.events", "commands.train", "commands.render", "commands.capture", "engine_install"),
     ("blender",),
-    ("batch", "cli"),
+    ("commands.scene", "batch", "cli"),
     ("__main__",),
 ]
 BLENDER_MODULES = ("bpy", "bmesh", "mathutils", "bpy_extras", "gpu", "blf")
@@ -40,9 +42,10 @@ def module_name(path: Path) -> str:
 
 
 def layer_of(module: str) -> int:
-    for rank, prefixes in enumerate(LAYERS):
-        if any(module == p or module.startswith(p + ".") for p in prefixes):
-            return rank
+    matches = [(len(p), rank) for rank, prefixes in enumerate(LAYERS) for p in prefixes
+               if module == p or module.startswith(p + ".")]
+    if matches:
+        return max(matches)[1]
     if module in ("", "core"):
         return -1  # the package roots hold no code that imports
     raise AssertionError(f"module {module!r} is in no layer: add it to LAYERS and docs/architecture.md")

@@ -400,7 +400,7 @@ def test_job_allocator_keeps_freed_memory():
     pattern of 12-64 MB allocations faults in almost no new pages, where glibc's defaults
     (RECGS_MALLOC=system) fault them all in again every time."""
     code = ("import resource, torch\n"
-            "from recgs_addon.runner import tune_allocator\n"
+            "from recgs_addon.commands.train import tune_allocator\n"
             "print(tune_allocator())\n"
             "def work():\n"
             "    for n in (3 << 20, 10 << 20, 16 << 20, 7 << 20):\n"

@@ -3,8 +3,8 @@
     python tools/make_reference.py            # (re)write docs/reference.md
     python tools/make_reference.py --check    # exit 1 if docs/reference.md is out of date
 
-The command line comes from its argument parsers (``recgs_addon.cli.build_parser``; the
-``train`` and ``render`` options from ``recgs_addon.runner``, batch mode's from
+The command line comes from its argument parsers (``recgs_addon.cli.build_parser``; each
+command's options from its ``add_*_arguments`` in ``recgs_addon.commands``, batch mode's from
 ``recgs_addon.batch``): flags, help text, default, choices. The Blender settings come from the
 bpy property definitions (``recgs_addon/blender/properties.py``, the per-object preview
 settings in ``preview.py`` and the add-on preferences in ``engine.py``), read from the

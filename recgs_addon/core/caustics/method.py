@@ -1,5 +1,5 @@
 """A training method: the trainer plus what a caustic method adds, behind one interface the
-runner, the benchmarks and the outputs use.
+``train`` command, the benchmarks and the outputs use.
 
 :class:`Method` is plain 3DGS (``3dgs``, or ``oracle`` trained on the ground-truth photos).
 The caustic methods (``recgs.py``, ``baselines.py``) subclass it: they fill the trainer's

@@ -1,4 +1,4 @@
-"""Background jobs, run as ``python -m recgs_addon train|render ...`` (no Blender needed).
+"""The ``train`` command: the background job, ``python -m recgs_addon train ...`` (no Blender needed).
 
 ``train`` streams progress as JSON lines on stdout (one object per line, ``"event"`` first:
 ``start``, ``progress``, ``checkpoint``, ``done``, ``error``) and a human-readable line per
@@ -25,38 +25,10 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
-
-from .core.caustics.config import CAUSTIC_MODES, ESTIMATORS, MODES, CausticConfig
-from .core.errors import RecGSError
-from .core.train.config import DEFAULT_STRATEGY, DENSITY_DEFAULTS
-
-
-def _emit(event: str, **fields) -> None:
-    print(json.dumps(_finite_tree({"event": event, **fields}), allow_nan=False, default=_json_default), flush=True)
-
-
-def _finite_tree(o):
-    """Non-finite floats (a PSNR of identical images is inf) become null, so the JSON is standard."""
-    if isinstance(o, dict):
-        return {k: _finite_tree(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite_tree(v) for v in o]
-    if isinstance(o, (float, np.floating)) and not math.isfinite(o):
-        return None
-    return o
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(type(o).__name__)
-
-
-def _finite(x):
-    return None if x is None or (isinstance(x, float) and not math.isfinite(x)) else x
+from ..core.caustics.config import CAUSTIC_MODES, ESTIMATORS, MODES, CausticConfig
+from ..core.errors import RecGSError
+from ..core.train.config import DEFAULT_STRATEGY, DENSITY_DEFAULTS
+from .events import _finite_tree, _json_default, emit, fail, finite
 
 
 def add_train_arguments(p) -> None:
@@ -206,12 +178,12 @@ def run_train(args) -> int:
 
     allocator = tune_allocator()
 
-    from .core.caustics.build import make_method
-    from .core.caustics.config import CausticConfig
-    from .core.io.ply import read_gaussian_ply
-    from .core.train.checkpoint import load_checkpoint
-    from .core.train.config import TrainConfig, preset
-    from .core.train.data import default_gt_dir
+    from ..core.caustics.build import make_method
+    from ..core.caustics.config import CausticConfig
+    from ..core.io.ply import read_gaussian_ply
+    from ..core.train.checkpoint import load_checkpoint
+    from ..core.train.config import TrainConfig, preset
+    from ..core.train.data import default_gt_dir
 
     torch.set_num_threads(max(1, torch.get_num_threads()))
     out: Path = args.out
@@ -235,7 +207,8 @@ def run_train(args) -> int:
             cfg = preset(args.preset, iterations=args.iterations, max_minutes=args.max_minutes,
                          downscale=args.downscale, max_side=args.max_side, sh_degree=args.sh_degree, seed=args.seed,
                          device=args.device, holdout_every=args.holdout_every,
-                         budget=_parse_budget(args.budget), compiled=False if args.eager else (True if args.compile_first else None),
+                         budget=_parse_budget(args.budget),
+                         compiled=False if args.eager else (True if args.compile_first else None),
                          keep_best=False if args.keep_last else None,
                          strategy=args.density)
             caustic = dict(mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
@@ -262,19 +235,15 @@ def run_train(args) -> int:
         n_train, n_test = len(trainer.data.train_ids), len(trainer.data.test_ids)
         trainer.finishing_renders = lambda: 2 * n_test + 2 * n_train + n_test + method.finishing_renders()
     except RecGSError as exc:
-        _emit("error", message=str(exc))
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return fail(str(exc))
 
-    from .core.io.lock import folder_lock
+    from ..core.io.lock import folder_lock
     try:
         lock = folder_lock(out)
         lock.__enter__()
     except RecGSError as exc:
         trainer.compiler.close()
-        _emit("error", message=str(exc))
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return fail(str(exc))
     try:
         return _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator, plan, t_command)
     finally:
@@ -289,7 +258,7 @@ def _reading_progress(t0: float):
     def on_image(done: int, total: int) -> None:
         now = time.perf_counter()
         if done == total or done % max(1, total // 20) == 0:
-            _emit("reading", done=done, total=total, elapsed=round(now - t0, 2))
+            emit("reading", done=done, total=total, elapsed=round(now - t0, 2))
         if done == total or now - said[0] >= 10:
             said[0] = now
             print(f"read {done}/{total} images in {now - t0:.0f}s", file=sys.stderr, flush=True)
@@ -299,7 +268,7 @@ def _reading_progress(t0: float):
 def _plan(args, method, trainer):
     """The run's plan (``core/train/plan.py``): emitted as a ``plan`` event and printed before
     any training; a run that cannot fit in memory is refused here (RecGSError)."""
-    from .core.train.plan import plan_run
+    from ..core.train.plan import plan_run
 
     limit = None if args.max_memory is None else int(args.max_memory * 2 ** 30)
     if limit is not None and not limit > 0:
@@ -308,15 +277,15 @@ def _plan(args, method, trainer):
     lines = plan.lines()
     if getattr(method, "estimator_why", None):
         lines.append(f"caustic estimator: {method.ccfg.estimator} ({method.estimator_why})")
-    _emit("plan", lines=lines, **plan.summary())
+    emit("plan", lines=lines, **plan.summary())
     for line in lines:
         print(line, file=sys.stderr, flush=True)
     return plan
 
 
 def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator, plan, t_command) -> int:
-    from .core.io.ply import write_gaussian_ply
-    from .core.train.checkpoint import save_checkpoint
+    from ..core.io.ply import write_gaussian_ply
+    from ..core.train.checkpoint import save_checkpoint
 
     stop = {"signal": None}
 
@@ -328,12 +297,12 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
     def checkpoint(tr) -> None:
         save_checkpoint(ckpt_path, method.state_dict())
         write_gaussian_ply(out / "point_cloud.ply", tr.gaussians())
-        _emit("checkpoint", path=str(ckpt_path), ply=str(out / "point_cloud.ply"), iteration=tr.step,
-              gaussians=int(tr.params["means"].shape[0]))
+        emit("checkpoint", path=str(ckpt_path), ply=str(out / "point_cloud.ply"), iteration=tr.step,
+             gaussians=int(tr.params["means"].shape[0]))
 
     def on_progress(p) -> None:
-        d = {k: _finite(v) for k, v in {**asdict(p), **p.extra}.items() if k != "extra"}
-        _emit("progress", **d)
+        d = {k: finite(v) for k, v in {**asdict(p), **p.extra}.items() if k != "extra"}
+        emit("progress", **d)
         msg = (f"[{p.phase}] it {p.iteration} loss {p.loss:.4f} gaussians {p.gaussians} "
                f"sh {p.sh_degree} {p.elapsed:.0f}s")
         if p.eta is not None:
@@ -343,13 +312,13 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
         print(msg, file=sys.stderr, flush=True)
 
     def on_compile(message: str) -> None:
-        _emit("compile", message=message, iteration=trainer.step)
+        emit("compile", message=message, iteration=trainer.step)
         print(message, file=sys.stderr, flush=True)
 
-    _emit("start", scene=str(args.scene_dir), out=str(out), resumed=bool(state), iteration=trainer.step,
-          train_views=len(trainer.data.train_ids), test_views=len(trainer.data.test_ids),
-          gaussians=int(trainer.params["means"].shape[0]), allocator=allocator, config={**asdict(cfg), **asdict(ccfg)},
-          plan=plan.summary())
+    emit("start", scene=str(args.scene_dir), out=str(out), resumed=bool(state), iteration=trainer.step,
+         train_views=len(trainer.data.train_ids), test_views=len(trainer.data.test_ids),
+         gaussians=int(trainer.params["means"].shape[0]), allocator=allocator, config={**asdict(cfg), **asdict(ccfg)},
+         plan=plan.summary())
     for message in trainer.compiler.messages:
         on_compile(message)
     trainer.compiler.log = on_compile
@@ -357,11 +326,9 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
         reason = method.run(on_progress=on_progress, should_stop=lambda: stop["signal"] is not None,
                              on_checkpoint=checkpoint, checkpoint_every_s=args.checkpoint_every)
     except RecGSError as exc:  # bad input found during training (an image that does not decode)
-        _emit("error", message=f"{exc} (training stopped at iteration {trainer.step}; the last checkpoint is kept)")
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return fail(str(exc), detail=f"training stopped at iteration {trainer.step}; the last checkpoint is kept")
     except Exception as exc:  # keep the last checkpoint; report the error as an event too
-        _emit("error", message=f"training failed at iteration {trainer.step}: {exc!r}")
+        emit("error", message=f"training failed at iteration {trainer.step}: {exc!r}")
         raise
     finally:
         trainer.compiler.close()
@@ -370,23 +337,21 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
     try:
         return _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint, plan, t_command)
     except RecGSError as exc:   # a full disk or an unwritable folder at the end: one line, the last checkpoint kept
-        _emit("error", message=f"{exc} (training ended at iteration {trainer.step}; the last checkpoint is kept)")
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return fail(str(exc), detail=f"training ended at iteration {trainer.step}; the last checkpoint is kept")
 
 
 def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint, plan, t_command) -> int:
     """The end of a run: the last checkpoint, the output images, metrics and report."""
-    from .core.outputs.diagnostics import support_summary, view_support
-    from .core.train.coverage import COVERAGE_VIEWS, spread, surface_coverage
-    from .core.outputs.exports import write_outputs
-    from .core.outputs.report import write_run_report
+    from ..core.outputs.diagnostics import support_summary, view_support
+    from ..core.train.coverage import COVERAGE_VIEWS, spread, surface_coverage
+    from ..core.outputs.exports import write_outputs
+    from ..core.outputs.report import write_run_report
 
     checkpoint(trainer)
     outputs = write_outputs(method, out)
     if reason == "stopped":
-        _emit("done", status="cancelled", reason=f"received {stop['signal']}", iteration=trainer.step,
-              checkpoint=str(ckpt_path))
+        emit("done", status="cancelled", reason=f"received {stop['signal']}", iteration=trainer.step,
+             checkpoint=str(ckpt_path))
         print(f"stopped by {stop['signal']} at iteration {trainer.step}; checkpoint saved", file=sys.stderr)
         return 0
     final = trainer.evaluate()
@@ -396,7 +361,8 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
         "status": "done", "reason": reason, "iterations": trainer.step,
         "seconds": round(trainer.elapsed, 2), "job_seconds": round(time.perf_counter() - t_command, 2),
         "gaussians": int(trainer.params["means"].shape[0]),
-        "sh_degree": trainer.sh_degree, "test_views": [trainer.data.scene.cameras[i].name for i in trainer.data.test_ids],
+        "sh_degree": trainer.sh_degree,
+        "test_views": [trainer.data.scene.cameras[i].name for i in trainer.data.test_ids],
         "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
         "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"),
         "psnr_test_captured": final.get("psnr_captured"), "view_support": support, "coverage": coverage,
@@ -406,90 +372,10 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
         "history": trainer.history, "recurrences": [], **method.summary(),
         "config": {**asdict(trainer.cfg), **asdict(ccfg)},
     }
-    from .core.io.atomic import atomic_path
+    from ..core.io.atomic import atomic_path
     with atomic_path(out / "metrics.json", "metrics") as tmp:
         tmp.write_text(json.dumps(_finite_tree(metrics), indent=2, allow_nan=False, default=_json_default))
     report = write_run_report(out, metrics, method)
-    _emit("done", report=str(report),
-          **{k: v for k, v in metrics.items() if k not in ("history", "config", "recurrences")})
+    emit("done", report=str(report),
+         **{k: v for k, v in metrics.items() if k not in ("history", "config", "recurrences")})
     return 0
-
-
-def add_render_arguments(p) -> None:
-    p.add_argument("model", type=Path, help="a 3DGS PLY")
-    p.add_argument("scene_dir", type=Path, help="survey whose cameras to render from")
-    p.add_argument("--out", type=Path, required=True, help="output folder (a PNG and a float EXR per view)")
-    p.add_argument("--names", default=None, help="comma-separated image names (default: all)")
-    p.add_argument("--downscale", type=int, default=1, help="render at the photo size divided by N")
-    p.add_argument("--images", default=None, help="compare against this image folder (default images/)")
-    p.add_argument("--eager", action="store_true",
-                   help="plain PyTorch rasterizer: neither numba's kernels nor torch.compile (slower)")
-
-
-def run_render(args) -> int:
-    import torch
-
-    from .core.io.atomic import make_folder
-    from .core.io.colmap import load_scene
-    from .core.io.images import write_image
-    from .core.train.losses import psnr
-    from .core.io.ply import read_gaussian_ply
-    from .core.render.rasterizer import render
-    from .core.train.data import resolve_image_dir
-
-    try:
-        if args.downscale < 1:
-            raise RecGSError(f"--downscale must be an integer >= 1, got {args.downscale}")
-        if args.out.exists() and not args.out.is_dir():
-            raise RecGSError(f"{args.out}: is a file, not a folder (choose another output folder)")
-        g = read_gaussian_ply(args.model)
-        image_dir = None
-        if args.images:
-            image_dir = resolve_image_dir(args.scene_dir, args.images)
-        scene = load_scene(args.scene_dir, image_dir=image_dir)
-        cams = scene.cameras
-        if args.names:
-            wanted = [n.strip() for n in args.names.split(",") if n.strip()]
-            unknown = [n for n in wanted if n not in {c.name for c in cams}]
-            if unknown:
-                raise RecGSError(f"{scene.model_dir}: no camera for image(s) {', '.join(unknown)}")
-            cams = [c for c in cams if c.name in wanted]
-        make_folder(args.out)
-    except RecGSError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    t = {k: torch.tensor(v) for k, v in (("means", g.means), ("log_scales", g.log_scales), ("quats", g.quats),
-                                         ("logit_opacities", g.logit_opacities), ("sh", g.sh))}
-    results = []
-    try:
-        for cam in cams:
-            results.append(_render_one(args, scene, cam, t, render, psnr, write_image))
-    except RecGSError as exc:   # an image that does not decode, a full disk
-        _emit("error", message=str(exc))
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    mean = float(np.mean([r["psnr"] for r in results if r["psnr"] is not None])) if results else None
-    _emit("done", views=len(results), mean_psnr=mean)
-    return 0
-
-
-def _render_one(args, scene, cam, t, render, psnr, write_image) -> dict:
-    """Render one camera, write its PNG and EXR, return its PSNR and time."""
-    import torch
-
-    img = scene.load_image(cam, downscale=args.downscale)
-    c = cam.resized(img.shape[1], img.shape[0])
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        out = render(t["means"], t["log_scales"], t["quats"], t["logit_opacities"], t["sh"],
-                     torch.tensor(cam.viewmat, dtype=torch.float32), torch.tensor(c.K, dtype=torch.float32),
-                     img.shape[1], img.shape[0], compiled=False if args.eager else None)
-    dt = time.perf_counter() - t0
-    rgb = out.rgb.numpy()
-    stem = Path(cam.name).with_suffix("")
-    write_image(args.out / f"{stem}.png", rgb)
-    write_image(args.out / f"{stem}.exr", rgb)
-    value = psnr(torch.from_numpy(np.clip(rgb, 0, 1)), torch.from_numpy(img))
-    result = {"name": cam.name, "psnr": _finite(value), "seconds": round(dt, 3)}
-    _emit("rendered", **result)
-    return result
