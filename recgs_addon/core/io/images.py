@@ -36,14 +36,20 @@ def _oiio():
     return oiio
 
 
-def image_size(path: str | os.PathLike) -> tuple[int, int]:
-    """(width, height) of an image file, read from its header only."""
-    oiio = _oiio()
+def _image_file(path: str | os.PathLike) -> Path:
+    """``path`` as a Path, if it is an image file that exists (ImageError naming it otherwise)."""
     path = Path(path)
     if path.is_dir():
         raise ImageError(f"{path}: is a folder, not an image file")
     if not path.is_file():
         raise ImageError(f"{path}: image file is missing")
+    return path
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of an image file, read from its header only."""
+    oiio = _oiio()
+    path = _image_file(path)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise ImageError(f"{path}: cannot read image ({oiio.geterror() or 'unknown format'})")
@@ -83,11 +89,7 @@ def read_image(path: str | os.PathLike, downscale: int = 1, size: tuple[int, int
         (H, W, 3) float32 (values in [0, 1] for integer formats), or the compact form.
     """
     oiio = _oiio()
-    path = Path(path)
-    if path.is_dir():
-        raise ImageError(f"{path}: is a folder, not an image file")
-    if not path.is_file():
-        raise ImageError(f"{path}: image file is missing")
+    path = _image_file(path)
     buf = oiio.ImageBuf(str(path))
     if buf.has_error or buf.spec().width <= 0:
         raise ImageError(f"{path}: cannot read image ({buf.geterror() or 'unknown format'})")
