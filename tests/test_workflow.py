@@ -404,3 +404,23 @@ def test_panel_draws_every_control(session):
                  "Elapsed: 1:39, remaining: 2:21"):
         assert text in running, text
     assert "Mode: 3DGS  (greyed out)" in running
+
+
+def test_panel_settings_round_trip_through_the_train_command_line(bpy_session):
+    """Settings -> the job's train command line -> parsed -> settings of a fresh scene: every
+    setting the panel passes to a job comes back the same (the one SETTINGS table both ways)."""
+    from recgs_addon.blender import jobs
+    from recgs_addon.blender.properties import SETTINGS, apply_train_args, train_options
+    from recgs_addon.cli import build_parser
+
+    s = bpy.context.scene.recgs
+    s.mode, s.max_minutes, s.iterations, s.budget_auto, s.budget = "recgs", 3.5, 700, False, 1234
+    s.downscale, s.max_side, s.sh_degree, s.seed, s.holdout_every = 2, 800, 2, 7, 5
+    s.checkpoint_every, s.eager, s.caustic_k, s.images = 15, True, 9, "photos"
+    argv = jobs.train_command("S", "O", train_options(s))
+    args = build_parser().parse_args(argv[3:])   # after [python, -m, recgs_addon]
+    fresh = bpy.data.scenes.new("round trip").recgs
+    apply_train_args(fresh, args)
+    for key in SETTINGS:
+        assert SETTINGS[key][0](fresh) == SETTINGS[key][0](s), key
+    assert (fresh.budget_auto, fresh.budget, fresh.images) == (False, 1234, "photos")

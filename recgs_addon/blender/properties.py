@@ -106,43 +106,64 @@ class RecGSSettings(bpy.types.PropertyGroup):
                                                   "(resolution, memory, time per 1,000 steps), one line each")
 
 
+def _parse_budget(s: RecGSSettings, value) -> None:
+    s.budget_auto = str(value) == "auto"
+    if not s.budget_auto:
+        if not str(value).isdigit() or int(value) < 1:
+            raise ValueError(f"--budget must be a number of Gaussians or 'auto', got {value!r}")
+        s.budget = int(value)
+
+
+def _copy(key: str):
+    """A setting that is the option as it is (an option not given leaves the setting alone)."""
+    def read(s):
+        return getattr(s, key)
+
+    def write(s, value):
+        if value is not None:
+            setattr(s, key, value)
+    return read, write
+
+
+def _zero_is_none(key: str):
+    """A setting where 0 means the option is not given (no limit)."""
+    return (lambda s: getattr(s, key) if getattr(s, key) > 0 else None,
+            lambda s, value: setattr(s, key, value or 0))
+
+
+def _unless(key: str, default: str):
+    """A text setting whose ``default`` (or empty) means the option is not given."""
+    return (lambda s: getattr(s, key) if getattr(s, key) and getattr(s, key) != default else None,
+            lambda s, value: setattr(s, key, str(value)) if value else None)
+
+
+#: The ``train`` options (argparse dests) the settings hold, each with how the settings give
+#: the option (``read``) and take it from a parsed command line (``write``): the one list the
+#: panel's jobs (:func:`train_options`), batch runs (:func:`apply_train_args`) and the
+#: generated reference follow.
+SETTINGS = {
+    "mode": _copy("mode"), "preset": _copy("preset"),
+    "max_minutes": _zero_is_none("max_minutes"), "iterations": _zero_is_none("iterations"),
+    "budget": (lambda s: "auto" if s.budget_auto else s.budget, _parse_budget),
+    "downscale": _copy("downscale"), "max_side": _copy("max_side"), "sh_degree": _copy("sh_degree"),
+    "seed": _copy("seed"), "holdout_every": _copy("holdout_every"), "checkpoint_every": _copy("checkpoint_every"),
+    "device": _unless("device", "cpu"), "eager": _copy("eager"),
+    "caustic_k": (lambda s: s.caustic_k if s.mode in CAUSTIC_MODES else None, _copy("caustic_k")[1]),
+    "images": _unless("images", "images"),
+}
+#: ``train`` options (argparse dests) that the settings hold.
+SETTINGS_OPTIONS = tuple(SETTINGS)
+
+
 def train_options(s: RecGSSettings) -> dict:
     """Trainer options (``train_command`` keys) from the settings."""
-    return {
-        "mode": s.mode, "preset": s.preset,
-        "max_minutes": s.max_minutes if s.max_minutes > 0 else None,
-        "iterations": s.iterations if s.iterations > 0 else None,
-        "budget": "auto" if s.budget_auto else s.budget,
-        "downscale": s.downscale, "max_side": s.max_side, "sh_degree": s.sh_degree, "seed": s.seed,
-        "holdout_every": s.holdout_every, "checkpoint_every": s.checkpoint_every,
-        "device": s.device if s.device and s.device != "cpu" else None,
-        "images": s.images if s.images and s.images != "images" else None,
-        "eager": s.eager,
-        "caustic_k": s.caustic_k if s.mode in CAUSTIC_MODES else None,
-    }
-
-
-#: ``train`` options (argparse dests) that the settings hold; see :func:`apply_train_args`.
-SETTINGS_OPTIONS = ("mode", "preset", "max_minutes", "iterations", "budget", "downscale", "max_side",
-                    "sh_degree", "seed",
-                    "holdout_every", "checkpoint_every", "device", "eager", "caustic_k", "images")
+    return {key: read(s) for key, (read, _) in SETTINGS.items()}
 
 
 def apply_train_args(s: RecGSSettings, args) -> None:
     """Copy parsed ``train`` arguments (an argparse namespace) into the settings."""
-    for key in ("mode", "preset", "downscale", "max_side", "sh_degree", "seed", "holdout_every", "checkpoint_every",
-                "device", "eager", "caustic_k"):
-        if getattr(args, key, None) is not None:
-            setattr(s, key, getattr(args, key))
-    s.max_minutes = args.max_minutes or 0.0
-    s.iterations = args.iterations or 0
-    s.budget_auto = str(args.budget) == "auto"
-    if not s.budget_auto:
-        if not str(args.budget).isdigit() or int(args.budget) < 1:
-            raise ValueError(f"--budget must be a number of Gaussians or 'auto', got {args.budget!r}")
-        s.budget = int(args.budget)
-    if getattr(args, "images", None):
-        s.images = str(args.images)
+    for key, (_, write) in SETTINGS.items():
+        write(s, getattr(args, key, None))
 
 
 classes = (RecGSSettings,)
