@@ -811,10 +811,27 @@ def test_job_says_its_plan_and_refuses_what_cannot_fit(small_scene, tmp_path):
         assert not out.exists()
 
 
+def test_automatic_budget_follows_the_seabed_the_views_hold(small_scene):
+    """An automatic budget: training pixels over the median views of a sparse point over
+    surface_pixels_per_gaussian, unless training pixels over pixels_per_gaussian is smaller;
+    never below the Gaussians a run starts with."""
+    from recgs_addon.core.train.coverage import sparse_coverage
+    from recgs_addon.core.train.trainer import auto_budget
+
+    tr = make_trainer(small_scene, tiny_cfg(pixels_per_gaussian=0, surface_pixels_per_gaussian=0.01))
+    pixels, views = tr.data.training_pixels(), sparse_coverage(tr.data).median_views
+    assert views > 1 and pixels == 6 * 40 * 30
+    assert tr.budget == int(pixels / views / 0.01) == auto_budget(tr.data, tr.cfg)
+    both = tiny_cfg(pixels_per_gaussian=0.1, surface_pixels_per_gaussian=0.01)
+    assert auto_budget(tr.data, both) == int(min(pixels / 0.1, pixels / views / 0.01))
+    assert auto_budget(tr.data, tiny_cfg(pixels_per_gaussian=0, surface_pixels_per_gaussian=0)) is None
+    assert make_trainer(small_scene, tiny_cfg(surface_pixels_per_gaussian=1e6)).budget == len(tr.data.scene.points)
+
+
 def test_plan_caps_an_automatic_budget_to_the_memory_there_is(small_scene):
     from recgs_addon.core.train import plan as planning
 
-    tr = make_trainer(small_scene, tiny_cfg(pixels_per_gaussian=0.01))   # an automatic budget of 720,000
+    tr = make_trainer(small_scene, tiny_cfg(pixels_per_gaussian=0.01, surface_pixels_per_gaussian=0))   # 720,000
     tr.data.load_all()
     n, auto = int(tr.params["means"].shape[0]), tr.budget
     assert auto == 720_000

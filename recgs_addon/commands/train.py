@@ -49,7 +49,8 @@ def add_train_arguments(p) -> None:
                         "continue a run that reached it")
     p.add_argument("--budget", default="auto",
                    help="maximum number of Gaussians, or 'auto': stop adding Gaussians when held-out quality "
-                        "stops improving. A fixed number gives a smaller file and a faster viewer, at some quality")
+                        "stops improving, at most one per 3.5 pixels of seabed (the training pixels over the views "
+                        "that see a point). A fixed number gives a smaller file and a faster viewer")
     p.add_argument("--density", choices=sorted(DENSITY_DEFAULTS), default=None,
                    help=f"density control (default {DEFAULT_STRATEGY}): adc (INRIA's clone/split by screen gradient) "
                         "or mcmc (relocate faded Gaussians under a fixed budget, 3DGS-MCMC; 2-3.5 dB lower held-out "

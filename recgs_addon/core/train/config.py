@@ -2,7 +2,8 @@
 method's own settings live beside it, in core/caustics/config.py); :func:`preset` gives
 
 * ``default``: coarse to fine, density control :data:`DEFAULT_STRATEGY` (INRIA's clone/split
-  under a budget of one Gaussian per 8 training pixels that stops growing once held-out PSNR
+  under a budget of one Gaussian per 3.5 pixels of seabed, the training pixels over the median
+  views of a sparse point, or per 8 training pixels if fewer, that stops growing once held-out PSNR
   stops improving; ``strategy="mcmc"``: 3DGS-MCMC, Gaussians below opacity 0.1 relocated,
   growth by opacity, one per 36 pixels), SH degree raised only when it helps held-out views,
   stop on a held-out plateau, and end with the model that scored best on the held-out photos
@@ -23,10 +24,14 @@ from ..errors import RecGSError
 #: relocation below opacity 0.1 (the paper's 0.005 left the budget on faint Gaussians: +0.27
 #: and +0.51 dB at 59,733 Gaussians after 3000 steps, two seeds, and 8 % less time a step;
 #: nerfstudio culls below 0.1 too) and one Gaussian per 6x6 block of training pixels, or
-#: INRIA's clone/split with one per 8 pixels.
+#: INRIA's clone/split with one per 8 pixels and one per 3.5 pixels of seabed (the training
+#: pixels over the median views of a sparse point): on dive surveys (12 views a point) the
+#: second cuts the model to a quarter or a third and scores as high or higher in a time limit
+#: (benchmarks/RESULTS.md#budget-by-seabed).
 DENSITY_DEFAULTS = {
     "mcmc": dict(strategy="mcmc", opacity_reg=0.01, scale_reg=0.01, pixels_per_gaussian=36.0, relocate_opacity=0.1),
-    "adc": dict(strategy="adc", opacity_reg=0.0, scale_reg=0.0, pixels_per_gaussian=8.0),
+    "adc": dict(strategy="adc", opacity_reg=0.0, scale_reg=0.0, pixels_per_gaussian=8.0,
+                surface_pixels_per_gaussian=3.5),
 }
 #: The density control of every mode unless asked otherwise: INRIA's clone/split. The caustic
 #: methods need its sharper model (on the sample, 4 minutes, recgs: caustic-free images 23.61 dB
@@ -82,6 +87,8 @@ class TrainConfig:
     growth_patience: int = 3             # budget auto: evals without plateau_min_gain*5 dB -> stop growth
     growth_rate: float = 0.0             # max fractional growth per densification (0 = unlimited)
     pixels_per_gaussian: float = 0.0     # budget auto: at most (training pixels / this) Gaussians
+    surface_pixels_per_gaussian: float = 0.0  # ... and at most (training pixels / median views of a
+                                              # sparse point / this): trainer.auto_budget
     sh_probation: int = 1000             # steps given to a new SH degree before it is judged
     sh_min_gain: float = 0.05            # dB a new SH degree must add on held-out views
     keep_best: bool = False              # end with the model that scored best on the held-out photos as captured

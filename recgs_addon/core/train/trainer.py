@@ -31,6 +31,7 @@ from ..render.rowgrads import RowGrads
 from . import density, numba_ssim
 from .compiling import CompileSwitch
 from .config import TrainConfig
+from .coverage import sparse_coverage
 from .data import TrainData, resolve_image_dir, view_tensors
 from .density_control import DensityMixin
 from .evaluation import PLATEAU, EvaluationMixin  # noqa: F401 (PLATEAU re-exported)
@@ -94,8 +95,10 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin):
         self.order: list[int] = []
         self.history: list[dict] = []
         self.budget = cfg.budget  # may be frozen by "auto"
-        if self.budget is None and cfg.pixels_per_gaussian > 0:
-            self.budget = max(len(gaussians), int(data.training_pixels() / cfg.pixels_per_gaussian))
+        if self.budget is None:
+            cap = auto_budget(data, cfg)
+            if cap is not None:
+                self.budget = max(len(gaussians), cap)
         self.growth_frozen = False
         self.sh_state = {"trial": None, "done": cfg.sh_degree == 0}
         self.best_psnr = -math.inf
@@ -425,6 +428,23 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin):
             self.objective_optimizer.load_state_dict(s["objective_optimizer"])
         # limits are checked again against this run's settings (a resume may raise them)
         self.done_reason = None if s["done_reason"] in ("iteration limit", "time limit") else s["done_reason"]
+
+
+def auto_budget(data: TrainData, cfg: TrainConfig) -> Optional[int]:
+    """The most Gaussians an automatic budget allows (None: no cap): ``training pixels /
+    pixels_per_gaussian``, and ``seabed pixels / surface_pixels_per_gaussian``, where the seabed's
+    pixels are the training pixels over the median number of training views that see a sparse
+    point (a survey whose views overlap 12 times holds a twelfth of its pixels' worth of
+    seabed). The smaller of the two."""
+    caps = []
+    pixels = data.training_pixels()
+    if cfg.pixels_per_gaussian > 0:
+        caps.append(pixels / cfg.pixels_per_gaussian)
+    if cfg.surface_pixels_per_gaussian > 0:
+        views = sparse_coverage(data).median_views
+        if views >= 1:
+            caps.append(pixels / views / cfg.surface_pixels_per_gaussian)
+    return int(min(caps)) if caps else None
 
 
 def make_trainer(scene_dir: str | Path, cfg: TrainConfig, images: Optional[str | Path] = None,
