@@ -116,17 +116,17 @@ def main(argv=None) -> int:
         log(f"training engine: {engine}")
     bpy.ops.wm.read_factory_settings(use_empty=True)
     from . import blender as addon   # the Blender layer: only once bpy imports
-    from .blender import properties, training
+    from .blender import job_follow, properties, training
 
     addon.register()
     try:
         extra = extra_train_args(parser, args, properties.SETTINGS_OPTIONS)
-        return _run(bpy, training, properties, args, extra, scene_dir, out, t0)
+        return _run(bpy, training, job_follow, properties, args, extra, scene_dir, out, t0)
     finally:
         addon.unregister()
 
 
-def _run(bpy, training, properties, args, extra: list[str], scene_dir: Path, out: Path, t0: float) -> int:
+def _run(bpy, training, job_follow, properties, args, extra: list[str], scene_dir: Path, out: Path, t0: float) -> int:
     scene = bpy.context.scene
     s = scene.recgs
     try:
@@ -145,17 +145,17 @@ def _run(bpy, training, properties, args, extra: list[str], scene_dir: Path, out
     log(f"imported {scene_dir}: {len(obj.data.vertices)} initial Gaussians")
     try:
         log(training.start_training(scene, obj, echo_stderr=True, extra_args=extra))
-        log("job: " + " ".join(training.active_job().job.argv))
+        log("job: " + " ".join(job_follow.active_job().job.argv))
     except (RecGSError, OSError, ValueError) as exc:  # WorkflowError included
         return fail(str(exc))
     try:
-        status = training.wait()
+        status = job_follow.wait()
     except KeyboardInterrupt:
         log("interrupted: stopping the job (it writes its checkpoint)")
-        training.cancel()
-        status = training.wait()
+        job_follow.cancel()
+        status = job_follow.wait()
     if status == "FAILED":
-        return fail(f"training failed: {training.last_failure or s.message}")
+        return fail(f"training failed: {job_follow.last_failure or s.message}")
     obj = bpy.data.objects[obj.name]
     try:
         copied = _save_outputs(bpy, obj, out)

@@ -355,7 +355,7 @@ def test_probe_describes_a_clip(clip):
 @pytest.mark.blender
 def test_import_video_operator_runs_the_job_and_imports(bpy_session, clip, tmp_path, monkeypatch):
     bpy = bpy_session
-    from recgs_addon.blender import jobs, training
+    from recgs_addon.blender import job_follow, jobs
     from recgs_addon.blender.gaussian_object import is_gaussian_object
 
     s = bpy.context.scene.recgs
@@ -368,9 +368,9 @@ def test_import_video_operator_runs_the_job_and_imports(bpy_session, clip, tmp_p
         with pytest.raises(RuntimeError, match="Install Training Engine"):
             bpy.ops.recgs.import_video()
     assert bpy.ops.recgs.import_video() == {"FINISHED"}
-    job = training.active_job().job
+    job = job_follow.active_job().job
     assert job.kind == "video" and job.argv[3:5] == ["video", str(clip[0])]
-    assert training.wait() == "DONE", s.message
+    assert job_follow.wait() == "DONE", s.message
     phases = {e["phase"] for e in job.history if e["event"] == "progress"}
     assert phases == {"frames", "features", "matching", "mapping"}
     obj = bpy.context.active_object
@@ -384,16 +384,16 @@ def test_import_video_operator_runs_the_job_and_imports(bpy_session, clip, tmp_p
 @pytest.mark.blender
 def test_import_video_cancel(bpy_session, clip, tmp_path):
     bpy = bpy_session
-    from recgs_addon.blender import training
+    from recgs_addon.blender import job_follow
 
     s = bpy.context.scene.recgs
     s.video_path, s.scene_dir = str(clip[0]), str(tmp_path / "survey")
     assert bpy.ops.recgs.import_video() == {"FINISHED"}
     t0 = time.monotonic()
     while not s.phase.startswith(("features", "matching")):
-        assert training.pump() is not None, s.message
+        assert job_follow.pump() is not None, s.message
         assert time.monotonic() - t0 < 60
         time.sleep(0.05)
     assert bpy.ops.recgs.cancel() == {"FINISHED"}
-    assert training.wait() == "CANCELLED", s.message
+    assert job_follow.wait() == "CANCELLED", s.message
     assert "continues" in s.message and not (tmp_path / "survey" / "sparse").exists()

@@ -38,34 +38,34 @@ def session(bpy_session, tiny_scene, tmp_path):
     s.iterations, s.max_minutes = 100000, 0.0
     s.out_dir = str(tmp_path / "out")
     yield bpy.context.scene, bpy.context.active_object.name, tmp_path / "out"
-    from recgs_addon.blender import training
+    from recgs_addon.blender import job_follow
 
-    training.stop_active(10)
+    job_follow.stop_active(10)
 
 
-def _training():
-    from recgs_addon.blender import training
+def _follow():
+    from recgs_addon.blender import job_follow
 
-    return training
+    return job_follow
 
 
 def _pump_until(pred, timeout=60.0):
-    training = _training()
+    follow = _follow()
     t0 = time.monotonic()
     while not pred():
-        assert training.pump() is not None, f"job ended early: {bpy.context.scene.recgs.message}"
+        assert follow.pump() is not None, f"job ended early: {bpy.context.scene.recgs.message}"
         assert time.monotonic() - t0 < timeout, "timed out"
         time.sleep(0.05)
 
 
 def _train_then_cancel(name):
     """Train from the operator, wait for a live update, cancel; returns the finished Job."""
-    training = _training()
+    follow = _follow()
     assert bpy.ops.recgs.train() == {"FINISHED"}
-    job = training.active_job().job
+    job = follow.active_job().job
     _pump_until(lambda: "recgs_synced" in bpy.data.objects[name])
     assert bpy.ops.recgs.cancel() == {"FINISHED"}
-    assert training.wait() == "CANCELLED"
+    assert follow.wait() == "CANCELLED"
     return job
 
 
@@ -82,10 +82,10 @@ def test_train_cancel_resume(session):
 
     scene, name, out = session
     s = scene.recgs
-    training = _training()
+    follow = _follow()
     job = _train_then_cancel(name)
     assert job.proc.poll() == 0 and job.last["done"]["status"] == "cancelled"
-    assert not training.is_running()
+    assert not follow.is_running()
     # the object holds the Gaussians of the last checkpoint (written on SIGTERM)
     ckpt = read_gaussian_ply(out / "point_cloud.ply")
     g = _object_gaussians(name)
@@ -96,9 +96,9 @@ def test_train_cancel_resume(session):
 
     s.iterations = s.iteration + 10
     assert bpy.ops.recgs.resume() == {"FINISHED"}
-    job = training.active_job().job
+    job = follow.active_job().job
     assert "--resume" in job.argv and "--init-ply" not in job.argv
-    assert training.wait() == "DONE", s.message
+    assert follow.wait() == "DONE", s.message
     assert job.last["start"]["resumed"] and job.last["done"]["iterations"] == s.iterations
     assert json.loads((out / "metrics.json").read_text())["iterations"] == s.iterations
     assert_same(read_gaussian_ply(out / "point_cloud.ply"), _object_gaussians(name))
@@ -113,7 +113,7 @@ def test_edited_object_is_what_resume_trains(session, tmp_path):
 
     scene, name, out = session
     s = scene.recgs
-    training = _training()
+    follow = _follow()
     _train_then_cancel(name)
     before = _object_gaussians(name)
     n = len(before)
@@ -131,7 +131,7 @@ def test_edited_object_is_what_resume_trains(session, tmp_path):
     obj.location = (0.5, -0.25, 0.1)
     s.iterations = 15
     assert bpy.ops.recgs.resume() == {"FINISHED"}  # still in Edit Mode
-    job = training.active_job().job
+    job = follow.active_job().job
     init = out / "edited_init.ply"
     assert "--resume" not in job.argv and job.argv[job.argv.index("--init-ply") + 1] == str(init)
     edited = read_gaussian_ply(init)
@@ -143,7 +143,7 @@ def test_edited_object_is_what_resume_trains(session, tmp_path):
     assert np.array_equal(np.array(obj.matrix_world), np.eye(4))
     bpy.ops.object.mode_set(mode="OBJECT")
     assert_same(edited, _object_gaussians(name))
-    assert training.wait() == "DONE", s.message
+    assert follow.wait() == "DONE", s.message
     assert job.last["start"]["gaussians"] == len(edited) and not job.last["start"]["resumed"]
     assert_same(read_gaussian_ply(out / "point_cloud.ply"), _object_gaussians(name))
 
@@ -155,7 +155,7 @@ def test_caustic_mode_outputs(session, tmp_path):
     s = scene.recgs
     s.mode, s.iterations = "recgs", 30
     assert bpy.ops.recgs.train() == {"FINISHED"}
-    assert _training().wait() == "DONE", s.message
+    assert _follow().wait() == "DONE", s.message
     made = sorted(p.name for p in (out / "decaustic").iterdir())
     assert any(n.endswith(".png") for n in made)
     assert bpy.ops.recgs.export_images(directory=str(tmp_path / "clean photos")) == {"FINISHED"}
@@ -171,12 +171,12 @@ def test_operator_errors_report_instead_of_raising(session, tmp_path, monkeypatc
 
     scene, name, out = session
     s = scene.recgs
-    training = _training()
+    follow = _follow()
 
     def refused(op, message, **kw):
         with pytest.raises(RuntimeError, match=message):
             op(**kw)
-        assert not training.is_running()
+        assert not follow.is_running()
 
     refused(bpy.ops.recgs.resume, "no checkpoint to resume from")
     refused(bpy.ops.recgs.cancel, "No RecGS job is running")
@@ -214,12 +214,12 @@ def test_operator_errors_report_instead_of_raising(session, tmp_path, monkeypatc
     bpy.context.view_layer.objects.active = bpy.data.objects[name]
     s.scene_dir = ""
     dummy = jobs.Job("train", [sys.executable, "-c", "import time; time.sleep(60)"])
-    training._begin(dummy, scene, object_name=name)
+    follow._begin(dummy, scene, object_name=name)
     for op in (bpy.ops.recgs.train, bpy.ops.recgs.resume, bpy.ops.recgs.reconstruct, bpy.ops.recgs.import_video):
         with pytest.raises(RuntimeError, match="already running"):
             op()
     assert bpy.ops.recgs.cancel() == {"FINISHED"}
-    assert training.wait() == "CANCELLED" and dummy.proc.poll() is not None
+    assert follow.wait() == "CANCELLED" and dummy.proc.poll() is not None
 
 
 def test_failed_jobs_are_reported(session):
@@ -227,17 +227,17 @@ def test_failed_jobs_are_reported(session):
 
     scene, name, out = session
     s = scene.recgs
-    training = _training()
+    follow = _follow()
     # a crash without an error event: exit code and the last stderr lines
     code = "import sys\nfor i in range(100): print('line', i, file=sys.stderr)\nsys.exit(3)"
-    training._begin(jobs.Job("train", [sys.executable, "-c", code]), scene, object_name=name)
-    assert training.wait() == "FAILED"
+    follow._begin(jobs.Job("train", [sys.executable, "-c", code]), scene, object_name=name)
+    assert follow.wait() == "FAILED"
     assert "exited with code 3" in s.message
-    assert "line 99" in training.last_failure and "line 10" not in training.last_failure
+    assert "line 99" in follow.last_failure and "line 10" not in follow.last_failure
     # the trainer's own error event (bad settings refused by the job)
     s.device = "cuda:7"
     assert bpy.ops.recgs.train() == {"FINISHED"}
-    assert training.wait() == "FAILED"
+    assert follow.wait() == "FAILED"
     assert "cuda" in s.message.lower(), s.message
 
 
@@ -271,9 +271,9 @@ def test_reconstruct_from_photos_then_import(bpy_session, tmp_path):
     s = bpy.context.scene.recgs
     s.photo_dir = str(photos)
     assert bpy.ops.recgs.reconstruct() == {"FINISHED"}
-    training = _training()
-    job = training.active_job().job
-    assert training.wait() == "DONE", s.message
+    follow = _follow()
+    job = follow.active_job().job
+    assert follow.wait() == "DONE", s.message
     scene_dir = tmp_path / "photos_scene"
     assert s.scene_dir == str(scene_dir)
     assert sorted(p.name for p in (scene_dir / "images").iterdir()) == sorted(p.name for p in photos.iterdir())

@@ -144,11 +144,11 @@ def snapshot(context, running: bool = False) -> str:
     """The sidebar drawn into text (the add-on must be registered)."""
     import bpy
 
-    from recgs_addon.blender import panel, training
+    from recgs_addon.blender import job_follow, panel
 
     lines: list[str] = []
-    real = training.is_running
-    training.is_running = lambda: running
+    real = job_follow.is_running
+    job_follow.is_running = lambda: running
     try:
         for cls in panel.classes:
             depth, parent = 0, getattr(cls, "bl_parent_id", "")
@@ -163,7 +163,7 @@ def snapshot(context, running: bool = False) -> str:
             fake.layout = Recorder(lines, depth + 1)
             cls.draw(fake, context)
     finally:
-        training.is_running = real
+        job_follow.is_running = real
     return "\n".join(lines)
 
 

@@ -1,6 +1,6 @@
 """Background jobs (``python -m recgs_addon train|sfm|video ...``) followed from Blender.
 
-This module does not touch ``bpy``: the sidebar's timer (``training.pump``) and the batch
+This module does not touch ``bpy``: the sidebar's timer (``job_follow.pump``) and the batch
 script both drive a :class:`Job` from Blender's main thread. A job is a separate process of
 the same Python (``sys.executable``, which inside Blender is Blender's own Python) with
 ``PYTHONPATH`` set to the folder holding the package, so it also runs from an installed

@@ -3,14 +3,14 @@
 Scene (folder, Import COLMAP, Reconstruct from Photos, Import Video), Training (settings, Train / Cancel /
 Resume, live figures; Advanced folded away), Output (Export PLY, caustic-free images,
 report) and Preview (drawn by ``preview.draw_panel``). Panels only draw: every action is an
-operator, every figure comes from ``scene.recgs`` (written by ``training.pump``).
+operator, every figure comes from ``scene.recgs`` (written by ``job_follow.pump``).
 """
 from __future__ import annotations
 
 import bpy
 
 from . import gaussian_object as gobj
-from . import engine, preview, training
+from . import engine, job_follow, job_progress, preview
 from ..core.caustics.config import CAUSTIC_MODES
 
 
@@ -48,7 +48,7 @@ class VIEW3D_PT_recgs_scene(_RecGSPanel, bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         s = context.scene.recgs
-        busy = training.is_running()
+        busy = job_follow.is_running()
         col = layout.column()
         col.prop(s, "scene_dir")
         col.prop(s, "images")
@@ -86,7 +86,7 @@ class VIEW3D_PT_recgs_training(_RecGSPanel, bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         s = context.scene.recgs
-        busy = training.is_running()
+        busy = job_follow.is_running()
         col = layout.column()
         col.enabled = not busy
         col.prop(s, "mode")
@@ -123,14 +123,14 @@ def draw_progress(layout, s) -> None:
     if s.status in ("RUNNING", "CANCELLING"):
         box.prop(s, "progress", text="Progress", slider=True)
     col = box.column(align=True)
-    if s.job_kind in training.PHASE_SPANS:
-        col.label(text=f"Elapsed: {training.format_seconds(s.elapsed)}")
+    if s.job_kind in job_progress.PHASE_SPANS:
+        col.label(text=f"Elapsed: {job_progress.format_seconds(s.elapsed)}")
     else:
         col.label(text=f"Iteration: {s.iteration:,}")
         col.label(text="Held-out PSNR: " + (f"{s.psnr_test:.2f} dB" if s.psnr_test >= 0 else "not measured yet"))
         col.label(text=f"Gaussians: {s.gaussians:,}")
-        col.label(text=f"Elapsed: {training.format_seconds(s.elapsed)}, remaining: "
-                       + (training.format_seconds(s.eta) if s.eta >= 0 else "unknown"))
+        col.label(text=f"Elapsed: {job_progress.format_seconds(s.elapsed)}, remaining: "
+                       + (job_progress.format_seconds(s.eta) if s.eta >= 0 else "unknown"))
     if s.plan and s.job_kind == "train":
         col = box.column(align=True)
         for line in s.plan.splitlines():
@@ -151,7 +151,7 @@ class VIEW3D_PT_recgs_advanced(_RecGSPanel, bpy.types.Panel):
         layout = self.layout
         s = context.scene.recgs
         col = layout.column()
-        col.enabled = not training.is_running()
+        col.enabled = not job_follow.is_running()
         for name in ("preset", "iterations", "sh_degree", "seed", "holdout_every", "checkpoint_every",
                      "device", "eager", "out_dir"):
             col.prop(s, name)

@@ -2,7 +2,7 @@
 
 Settings map one to one onto ``python -m recgs_addon train`` options (see
 :func:`train_options`); the status fields are written by the timer that follows the job
-(``training.pump``) and only drawn by the panel.
+(``job_follow.pump``) and only drawn by the panel.
 """
 from __future__ import annotations
 

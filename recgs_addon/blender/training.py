@@ -2,8 +2,7 @@
 
 The workflow's other parts: :mod:`.job_follow` follows the running job (:mod:`.job_progress`
 shows its progress), :mod:`.reconstruct` makes a survey from photos or a video, :mod:`.outputs`
-hands out a job's results and :mod:`.workflow` holds what they share. Their public names are
-also importable from here.
+hands out a job's results and :mod:`.workflow` holds what they share.
 
 Resume uses the object as the artist left it: when its Gaussians (world space) differ from
 both the last checkpoint's PLY and what the last live update wrote, they are baked into the
@@ -19,23 +18,10 @@ import numpy as np
 
 from . import gaussian_object as gobj
 from . import job_follow, jobs, outputs, reconstruct
-from .job_follow import (TIMER_INTERVAL_S, ActiveJob, _begin, _check_free, active_job,  # noqa: F401 (re-exported)
-                         cancel, is_running, live_update, pump, stop_active, wait)
-from .job_progress import PHASE_SPANS, format_seconds, status_line  # noqa: F401 (re-exported)
-from .outputs import REPORT_TEXT, RECGS_OT_export_images, RECGS_OT_open_report  # noqa: F401 (re-exported)
 from ..core.caustics.config import CAUSTIC_MODES
+from .job_follow import _begin, _check_free, cancel
 from .properties import train_options
-from .reconstruct import (RECGS_OT_import_video, RECGS_OT_reconstruct,  # noqa: F401 (re-exported)
-                          start_reconstruction, start_video_import)
-from .workflow import DEFAULT_OUT, WorkflowError, _run, out_dir_for, scene_dir_for  # noqa: F401 (re-exported)
-
-
-def __getattr__(name: str):
-    """``last_failure`` (the full message of the last failed job) is rebound in :mod:`.job_follow`;
-    ``training.last_failure`` reads it there."""
-    if name == "last_failure":
-        return job_follow.last_failure
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+from .workflow import WorkflowError, _run, out_dir_for, scene_dir_for
 
 
 def _gaussian_object(obj):

@@ -264,18 +264,18 @@ def worker_python(python):
 
 
 def train(steps):
-    training = mod("blender.training")
+    training, follow = mod("blender.training"), mod("blender.job_follow")
     scene, obj = bpy.context.scene, bpy.context.active_object
     s = scene.recgs
     s.iterations, s.max_minutes, s.checkpoint_every = steps, 0.0, 5.0
     s.out_dir = os.path.join(os.path.dirname(bpy.context.scene.render.filepath) or ".", "train")
     training.start_training(scene, obj)
     seen = []
-    while training.pump() is not None:  # the timer function of the sidebar's Train button
+    while follow.pump() is not None:  # the timer function of the sidebar's Train button
         if s.iteration and (not seen or seen[-1] != s.iteration):
             seen.append(s.iteration)
         time.sleep(0.2)
-    assert s.status == "DONE", f"{s.status}: {s.message} {training.last_failure}"
+    assert s.status == "DONE", f"{s.status}: {s.message} {follow.last_failure}"
     assert s.iteration == steps, (s.iteration, steps)
     assert seen, "no progress seen"
     assert os.path.isfile(os.path.join(s.out_dir, "point_cloud.ply"))
@@ -291,7 +291,7 @@ def train(steps):
 
 
 def train_cancel():
-    training = mod("blender.training")
+    training, follow = mod("blender.training"), mod("blender.job_follow")
     scene, obj = bpy.context.scene, bpy.context.active_object
     s = scene.recgs
     s.iterations = 5000
@@ -299,7 +299,7 @@ def train_cancel():
     training.start_training(scene, obj)
     t0 = time.perf_counter()
     cancelled_at = None
-    while training.pump() is not None:
+    while follow.pump() is not None:
         if cancelled_at is None and s.iteration > 0:
             bpy.ops.recgs.cancel()
             cancelled_at = s.iteration
