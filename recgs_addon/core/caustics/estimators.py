@@ -68,7 +68,6 @@ class Estimates:
             return compensate_caustics(image, render, self._eval_k, "additive", False)
         return self._decaustic(image, self._estimate(image, render, self._eval_k))
 
-
     @property
     def _eval_k(self) -> int:
         """The filter held-out views are compensated with: the training views' (the paper's
