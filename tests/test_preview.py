@@ -57,12 +57,12 @@ def _read(attrs, name, width=1, prop="value"):
 
 
 def test_ensure_builds_modifier_group_and_materials(session):
-    from recgs_addon.blender import preview
+    from recgs_addon.blender import preview, preview_nodes
 
     obj = _gaussian_object(random_gaussians(n=200, degree=1))
     mod = preview.ensure_preview(obj)
     assert mod.name == preview.MODIFIER_NAME and mod.type == "NODES"
-    assert mod.node_group.name == preview.NODE_GROUP_NAME
+    assert mod.node_group.name == preview_nodes.NODE_GROUP_NAME
     kinds = {n.bl_idname for n in mod.node_group.nodes}
     assert {"GeometryNodeInstanceOnPoints", "GeometryNodeMeshIcoSphere", "GeometryNodeMeshToPoints",
             "FunctionNodeQuaternionToRotation"} <= kinds
@@ -220,7 +220,7 @@ def test_remove_preview(session):
 
 
 def test_save_and_reload_keeps_preview(tmp_path, session):
-    from recgs_addon.blender import preview
+    from recgs_addon.blender import preview, preview_nodes
 
     obj = _gaussian_object(random_gaussians(n=400, degree=1))
     preview.ensure_preview(obj, mode="ELLIPSOIDS", display_ratio=0.5)
@@ -233,7 +233,7 @@ def test_save_and_reload_keeps_preview(tmp_path, session):
     bpy.ops.wm.open_mainfile(filepath=str(path))
     obj = bpy.data.objects["G"]
     mod = preview.preview_modifier(obj)
-    assert mod is not None and mod.node_group.name == preview.NODE_GROUP_NAME
+    assert mod is not None and mod.node_group.name == preview_nodes.NODE_GROUP_NAME
     assert obj.recgs_preview.display_ratio == pytest.approx(0.5)
     assert obj.recgs_preview.extent == pytest.approx(2.0)
     assert [m.name for m in obj.data.materials] == [preview.SPLAT_MATERIAL, preview.POINT_MATERIAL]
@@ -244,15 +244,15 @@ def test_save_and_reload_keeps_preview(tmp_path, session):
 
 
 def test_outdated_node_group_is_rebuilt_in_place(session):
-    from recgs_addon.blender import preview
+    from recgs_addon.blender import preview, preview_nodes
 
     obj = _gaussian_object(random_gaussians(n=30, degree=0))
     preview.ensure_preview(obj)
-    ng = bpy.data.node_groups[preview.NODE_GROUP_NAME]
+    ng = bpy.data.node_groups[preview_nodes.NODE_GROUP_NAME]
     ng["recgs_preview_version"] = 0
     ng.nodes.clear()
     preview.ensure_preview(obj)
-    assert len(bpy.data.node_groups) == 1 and ng.get("recgs_preview_version") == preview.VERSION
+    assert len(bpy.data.node_groups) == 1 and ng.get("recgs_preview_version") == preview_nodes.VERSION
     assert _evaluated(obj)[0] == 30
 
 

@@ -45,9 +45,8 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, PointerProperty
 
 from . import gaussian_object as gobj
-from .preview_nodes import (ALPHA_MAX, ALPHA_MIN, DEFAULT_EXTENT, MIN_SIGMA,  # noqa: F401 (re-exported)
-                            NODE_GROUP_NAME, POINT_MATERIAL, SH_C0, SPLAT_MATERIAL, VERSION, node_group,
-                            point_material, splat_material)
+from .preview_nodes import (DEFAULT_EXTENT, POINT_MATERIAL, SH_C0, SPLAT_MATERIAL, node_group, point_material,
+                            splat_material)
 
 MODIFIER_NAME = "RecGS Preview"
 #: A new preview shows about this many Gaussians in the viewport (display ratio below 1 for
