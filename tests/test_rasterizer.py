@@ -24,7 +24,7 @@ sys.path.insert(0, ROOT)
 
 from reference_render import reference_render  # noqa: E402
 
-from recgs_addon.core.render import rasterizer  # noqa: E402
+from recgs_addon.core.render import kernels, numba_path, rasterizer  # noqa: E402
 from recgs_addon.core.model.cameras import quat_to_rotmat  # noqa: E402
 from recgs_addon.core.render.rasterizer import render  # noqa: E402
 
@@ -631,7 +631,7 @@ def test_compiled_path_survives_first_call_under_no_grad():
 # ------------------------------------------------------------------------------ numba
 
 def _numba_works():
-    return rasterizer.numba_kernels_ready()
+    return kernels.numba_kernels_ready()
 
 
 needs_numba = pytest.mark.skipif(not _numba_works(), reason="numba is not installed here")
@@ -763,7 +763,7 @@ def test_numba_missing_means_eager(monkeypatch):
     from recgs_addon.core.render import numba_kernels
     monkeypatch.setattr(numba_kernels, "_STATE", {"error": ImportError("No module named 'numba'")})
     monkeypatch.setattr(rasterizer, "_KERNEL_CACHE", dict(rasterizer._KERNEL_CACHE))
-    assert not rasterizer.numba_kernels_ready()
+    assert not kernels.numba_kernels_ready()
     scene = make_scene(3, n=50)
     with pytest.warns(UserWarning, match="numba kernels unavailable"):
         out, _ = run(scene, compiled="numba")
@@ -788,7 +788,7 @@ def test_numba_failing_at_run_time_falls_back_to_eager(monkeypatch):
     with pytest.warns(UserWarning, match="numba kernels failed"):
         out, _ = run(scene, compiled="numba")
     assert out.stats["path"] == "eager" and torch.equal(out.rgb, ref.rgb)
-    assert not rasterizer.numba_kernels_ready() and "boom" in repr(numba_kernels.error())
+    assert not kernels.numba_kernels_ready() and "boom" in repr(numba_kernels.error())
     with pytest.warns(UserWarning, match="numba kernels unavailable"):
         again, _ = run(scene, compiled="numba")
     assert again.stats["path"] == "eager"
@@ -816,7 +816,7 @@ def test_numba_projection_gradients_match_float64_autograd(deg, antialiased):
     assert len(ids) > 50
     rows32 = [p.index_select(0, ids).requires_grad_() for p in p32]
     campos = projection.camera_centre(torch.from_numpy(vm)).numpy()
-    outs = rasterizer._ProjectNumba.apply(*rows32, (nk, deg, vm, K, campos, w, h, 0.2, antialiased))
+    outs = numba_path._ProjectNumba.apply(*rows32, (nk, deg, vm, K, campos, w, h, 0.2, antialiased))
     rows64 = [r.detach().double().requires_grad_() for r in rows32]
     q = projection._project_rows(*rows64[:4], torch.from_numpy(vm), torch.from_numpy(K), w, h, 0.2,
                                  antialiased)

@@ -43,8 +43,7 @@ import torch
 from .chunks import ALPHA_MAX, T_MIN, _chunk_backward, _chunk_forward
 from .composite import _Composite
 from .kernels import _KERNEL_CACHE, _Kernels, _compiled_kernels, _sh_fn, _smoke_test
-from .kernels import numba_kernels_ready  # noqa: F401 (re-exported)
-from .numba_path import _CompositeNumba, _ProjectNumba  # noqa: F401 (_ProjectNumba re-exported)
+from .numba_path import _CompositeNumba, _ProjectNumba
 from .projection import ALPHA_MIN, _index_rows, camera_centre, project_gaussians
 from .tiles import _Plan, _build_plan
 

@@ -194,7 +194,7 @@ def _numba_ready() -> bool:
     """Load numba's kernels here (compiling them if the cache is cold): the rasterizer's, then
     the loss's SSIM (whose failure alone leaves the SSIM eager); False if the rasterizer's fail."""
     use_numba_cache()
-    from ..render.rasterizer import numba_kernels_ready
+    from ..render.kernels import numba_kernels_ready
     from . import numba_ssim
     if not numba_kernels_ready():
         return False
