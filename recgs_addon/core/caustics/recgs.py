@@ -51,8 +51,9 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
+from ..train.evaluation import PLATEAU
 from ..train.losses import psnr
-from ..train.trainer import PLATEAU, Progress, Trainer
+from ..train.trainer import Progress, Trainer
 from . import fft_filter, likelihood
 from .config import CausticConfig
 from . import estimators

@@ -34,7 +34,7 @@ from .config import TrainConfig
 from .coverage import sparse_coverage
 from .data import TrainData, resolve_image_dir, view_tensors
 from .density_control import DensityMixin
-from .evaluation import PLATEAU, EvaluationMixin  # noqa: F401 (PLATEAU re-exported)
+from .evaluation import EvaluationMixin
 from .losses import training_loss
 from .objective import Objective
 from .progress import Progress, ProgressMixin
