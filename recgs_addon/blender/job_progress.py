@@ -27,12 +27,7 @@ def _ui_end() -> None:
     wins = _windows()
     if wins:
         bpy.context.window_manager.progress_end()
-    for win in wins:
-        try:
-            win.workspace.status_text_set(None)
-        except (AttributeError, RuntimeError):
-            pass
-    _redraw(wins)
+    _status_text(wins, None)
 
 
 def status_line(s) -> str:
@@ -58,7 +53,11 @@ def _ui_update(s) -> None:
     if not wins:
         return
     bpy.context.window_manager.progress_update(int(1000 * s.progress))
-    text = status_line(s) if s.status in ("RUNNING", "CANCELLING") else None
+    _status_text(wins, status_line(s) if s.status in ("RUNNING", "CANCELLING") else None)
+
+
+def _status_text(wins, text) -> None:
+    """Show ``text`` in every window's status bar (None: clear it), then redraw them."""
     for win in wins:
         try:
             win.workspace.status_text_set(text)
