@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from .events import emit, fail
+from .events import StopSignals, emit, fail
 
 
 def add_sfm_arguments(p: argparse.ArgumentParser) -> None:
@@ -95,29 +95,21 @@ def cmd_sfm(args) -> int:
         emit("progress", phase=phase, done=done, total=total, elapsed=round(time.perf_counter() - t0, 2))
         print(f"[{phase}] {done}/{total}", file=sys.stderr, flush=True)
 
-    import signal
-
     from ..core.errors import Cancelled
 
-    stop = {"signal": None}
-
-    def on_signal(signum, _frame):
-        stop["signal"] = signal.Signals(signum).name
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    stop = StopSignals().install()
     try:
         result = reconstruct(image_dir, model_dir, scene / "database.db",
                              SfmOptions(camera_model=args.camera_model, threads=args.threads), on_progress,
-                             resume=True, should_stop=lambda: stop["signal"] is not None)
+                             resume=True, should_stop=stop)
     except Cancelled:
-        emit("done", status="cancelled", reason=f"received {stop['signal']}", scene=str(scene))
-        print(f"stopped by {stop['signal']}; run the same command again to continue", file=sys.stderr)
+        emit("done", status="cancelled", reason=f"received {stop.received}", scene=str(scene))
+        print(f"stopped by {stop.received}; run the same command again to continue", file=sys.stderr)
         return 0
     except RecGSError as exc:
         return fail(str(exc))
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        stop.restore()
     emit("done", status="done", scene=str(scene), **result.summary())
     print(f"registered {result.registered}/{result.images} photos, {result.points} points, "
           f"model in {model_dir}", file=sys.stderr)
@@ -143,8 +135,6 @@ VIDEO_SIFT_FULL_SIZE = 1280
 
 
 def cmd_video(args) -> int:
-    import signal
-
     from ..core.errors import Cancelled, RecGSError, SceneError
 
     t0 = time.perf_counter()
@@ -172,12 +162,7 @@ def cmd_video(args) -> int:
             return fail(f"{name} must be {low} to {high}, got {value}")
     options = VideoOptions(frames=args.frames, every_s=args.every, max_side=args.max_side,
                            image_format=args.format, jpeg_quality=args.quality, threads=args.threads)
-    stop = {"signal": None}
-
-    def on_signal(signum, _frame):
-        stop["signal"] = signal.Signals(signum).name
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    stop = StopSignals().install()
     if not args.verbose:
         pycolmap.logging.minloglevel = 3   # COLMAP's INFO to ERROR lines: ours say the same, briefly
 
@@ -213,7 +198,7 @@ def cmd_video(args) -> int:
         if record is None:
             record = import_frames(args.clip, survey, options,
                                    lambda done, total, kept: progress("frames", done, total, chosen=kept),
-                                   lambda: stop["signal"] is not None)
+                                   stop)
             t_frames = time.perf_counter() - t_frames
         else:
             t_frames = 0.0
@@ -229,21 +214,20 @@ def cmd_video(args) -> int:
                                  min_registered=max(2, math.ceil(args.min_registered * chosen)))
         try:
             result = reconstruct(survey / "images", model_dir, survey / "database.db", sfm_options, progress,
-                                 resume=True, should_stop=lambda: stop["signal"] is not None)
+                                 resume=True, should_stop=stop)
         except SceneError as exc:
             raise SceneError(f"{args.clip}: {exc}. Choose more frames (--frames, or a shorter --every), match "
                              "more neighbours (--overlap), or film slower with more overlap") from exc
     except Cancelled:
-        emit("done", status="cancelled", reason=f"received {stop['signal']}", survey=str(survey))
-        print(f"stopped by {stop['signal']}; run the same command again to continue", file=sys.stderr)
+        emit("done", status="cancelled", reason=f"received {stop.received}", survey=str(survey))
+        print(f"stopped by {stop.received}; run the same command again to continue", file=sys.stderr)
         return 0
     except RecGSError as exc:
         return fail(str(exc))
     except OSError as exc:
         return fail(f"{exc.filename or survey}: {exc.strerror or exc}")
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        stop.restore()
     seconds = {"frames": round(t_frames, 2), **result.summary()["step_seconds"]}
     emit("done", status="done", survey=str(survey), chosen=chosen, frame_count=record["frame_count"],
          **{**result.summary(), "step_seconds": seconds, "seconds": round(time.perf_counter() - t0, 2)})

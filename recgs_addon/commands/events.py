@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import sys
 from pathlib import Path
 
@@ -26,6 +27,31 @@ def fail(message: str, *, detail: str | None = None) -> int:
     emit("error", message=f"{message} ({detail})" if detail else message)
     print(f"error: {message}", file=sys.stderr)
     return 1
+
+
+class StopSignals:
+    """SIGTERM and SIGINT, while installed, ask a command to stop instead of ending it: calling
+    the object says whether one came (the ``should_stop`` a long step polls), ``received`` is
+    its name. A command installs it before its long work and restores the handlers after."""
+
+    def __init__(self) -> None:
+        self.received: str | None = None
+        self._old: dict = {}
+
+    def __call__(self) -> bool:
+        return self.received is not None
+
+    def install(self) -> "StopSignals":
+        self._old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+        return self
+
+    def restore(self) -> None:
+        for s, h in self._old.items():
+            signal.signal(s, h)
+        self._old = {}
+
+    def _on_signal(self, signum, _frame) -> None:
+        self.received = signal.Signals(signum).name
 
 
 def _finite_tree(o):

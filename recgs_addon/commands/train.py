@@ -19,7 +19,6 @@ import ctypes
 import json
 import math
 import os
-import signal
 import sys
 import time
 from dataclasses import asdict
@@ -28,7 +27,7 @@ from pathlib import Path
 from ..core.caustics.config import CAUSTIC_MODES, ESTIMATORS, MODES, CausticConfig
 from ..core.errors import RecGSError
 from ..core.train.config import DEFAULT_STRATEGY, DENSITY_DEFAULTS
-from .events import _finite_tree, _json_default, emit, fail, finite
+from .events import StopSignals, _finite_tree, _json_default, emit, fail, finite
 
 
 def add_train_arguments(p) -> None:
@@ -288,12 +287,7 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
     from ..core.io.ply import write_gaussian_ply
     from ..core.train.checkpoint import save_checkpoint
 
-    stop = {"signal": None}
-
-    def on_signal(signum, _frame):
-        stop["signal"] = signal.Signals(signum).name
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    stop = StopSignals().install()
 
     def checkpoint(tr) -> None:
         save_checkpoint(ckpt_path, method.state_dict())
@@ -324,7 +318,7 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
         on_compile(message)
     trainer.compiler.log = on_compile
     try:
-        reason = method.run(on_progress=on_progress, should_stop=lambda: stop["signal"] is not None,
+        reason = method.run(on_progress=on_progress, should_stop=stop,
                              on_checkpoint=checkpoint, checkpoint_every_s=args.checkpoint_every)
     except RecGSError as exc:  # bad input found during training (an image that does not decode)
         return fail(str(exc), detail=f"training stopped at iteration {trainer.step}; the last checkpoint is kept")
@@ -333,8 +327,7 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
         raise
     finally:
         trainer.compiler.close()
-        for s, h in old.items():
-            signal.signal(s, h)
+        stop.restore()
     try:
         return _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint, plan, t_command)
     except RecGSError as exc:   # a full disk or an unwritable folder at the end: one line, the last checkpoint kept
@@ -351,9 +344,9 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
     checkpoint(trainer)
     outputs = write_outputs(method, out)
     if reason == "stopped":
-        emit("done", status="cancelled", reason=f"received {stop['signal']}", iteration=trainer.step,
+        emit("done", status="cancelled", reason=f"received {stop.received}", iteration=trainer.step,
              checkpoint=str(ckpt_path))
-        print(f"stopped by {stop['signal']} at iteration {trainer.step}; checkpoint saved", file=sys.stderr)
+        print(f"stopped by {stop.received} at iteration {trainer.step}; checkpoint saved", file=sys.stderr)
         return 0
     final = trainer.evaluate()
     support = support_summary(view_support(trainer))
