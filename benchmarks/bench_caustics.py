@@ -76,6 +76,15 @@ SURVEYS.update({
     "dive-wander": DIVE + ["--seed", "35", "--path", "wander", "--caustic-pattern", "voronoi",
                            "--caustic-strength", "0.6"],
 })
+# Dive surveys behind green coastal water (tools/survey_water.py): the diver rises and sinks
+# between about 1.6 and 3.8 m above the seabed, so ranges run from about 1.5 to 5 m and every
+# point is seen from several; clean/ holds the true colour (no water, the caustics' mean light).
+WATER = ["--water", "coastal", "--altitude", "2.7", "--altitude-swing", "1.1", "--save-depth"]
+SURVEYS.update({
+    "dive-water": DIVE + WATER + ["--seed", "41", "--caustic-strength", "0"],
+    "dive-water-networks": DIVE + WATER + ["--seed", "42", "--caustic-pattern", "voronoi",
+                                           "--caustic-strength", "0.9"],
+})
 # Every method on one density control (adc, the caustic modes' default; plain 3DGS alone
 # defaults to mcmc), so that a method's score is the method's, not its densification's.
 METHODS = {

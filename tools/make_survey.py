@@ -71,6 +71,7 @@ from survey_light import CAUSTIC_PATTERNS, caustic_gain, caustic_shots, light_di
 from survey_materials import CausticRig, _bpy, add_caustic_images  # noqa: E402
 from survey_scene import (add_camera, build_scene, configure_render, log, render_exr,  # noqa: E402
                           scene_triangles, set_camera_pose)
+from survey_water import WATER_TYPES, apply_water, ray_lengths, water_coefficients  # noqa: E402
 
 
 # ---------------------------------------------------------------------------------------------
@@ -229,6 +230,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--lines", type=int, default=0, help="lawnmower lines (0: about sqrt(views / 3))")
     g.add_argument("--path", choices=("lawnmower", "wander"), default="lawnmower",
                    help="survey lines, or a diver's wandering track that loops back over the seabed")
+    g.add_argument("--altitude-swing", type=float, default=0.0,
+                   help="the camera rises and sinks by this much (m) along the path: several ranges per point")
+    g.add_argument("--altitude-period", type=float, default=40.0, help="views per rise and fall")
     g.add_argument("--rocks", type=int, default=7, help="number of rocks")
     g = p.add_argument_group("caustics")
     g.add_argument("--caustic-pattern", choices=CAUSTIC_PATTERNS, default="refraction", help="pattern kind")
@@ -242,6 +246,12 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "drifts with time (video frames, --caustic-dt apart)")
     g.add_argument("--caustic-drift", default="0.01,0.004", help="smooth motion: drift in tile units per second")
     g.add_argument("--caustic-res", type=int, default=256, help="texture resolution (texels per tile)")
+    g = p.add_argument_group("water (attenuation and backscatter; see tools/survey_water.py)")
+    g.add_argument("--water", choices=("none",) + tuple(WATER_TYPES), default="none",
+                   help="water between seabed and camera; clean/ stays the true colour without it")
+    g.add_argument("--water-attenuation", default="", help="override: direct attenuation 'r,g,b' per metre")
+    g.add_argument("--water-backscatter", default="", help="override: backscatter coefficient 'r,g,b' per metre")
+    g.add_argument("--water-colour", default="", help="override: veiling light 'r,g,b' (linear)")
     g = p.add_argument_group("lighting and rendering")
     g.add_argument("--sun-tilt", type=float, default=25.0, help="sun tilt from vertical (degrees)")
     g.add_argument("--sun-azimuth", type=float, default=35.0, help="sun azimuth (degrees from +x)")
@@ -273,6 +283,10 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error("--caustic-strength must be in [0, 1]")
     if a.views < 1 or a.width < 8 or a.height < 8:
         p.error("need at least one view of at least 8 x 8 pixels")
+    try:
+        a.water_model = water_coefficients(a.water, a.water_attenuation, a.water_backscatter, a.water_colour)
+    except ValueError as exc:
+        p.error(f"--water-*: {exc}")
     return a
 
 
@@ -317,6 +331,22 @@ onto z = 0 and multiplies every seabed material's base colour, so in linear ligh
 pixel is approximately g times the matching `clean/` pixel. The mean of g is exactly 1: caustics
 redistribute light without adding any, so `clean/` (g = 1) is the scene under the caustics' mean
 illumination. {_motion_text(args)}
+{_water_text(args)}"""
+
+
+def _water_text(args) -> str:
+    w = args.water_model
+    if w is None:
+        return ""
+    fmt = lambda v: ", ".join(f"{x:g}" for x in v)  # noqa: E731
+    return f"""
+## Water
+
+Between seabed and camera: `{w["type"]}` water (tools/survey_water.py), per linear channel
+I = J exp(-bD r) + Binf (1 - exp(-bB r)) with r the range along the ray, bD = ({fmt(w["attenuation_per_m"])}) per m,
+bB = ({fmt(w["backscatter_per_m"])}) per m, Binf = ({fmt(w["veiling_light"])}). `images/` holds I; `clean/` holds J,
+the seabed's true colour (under the caustics' mean light). The camera rises and sinks by
+{args.altitude_swing} m about {args.altitude} m, so every point is seen from several ranges.
 """
 
 
@@ -332,8 +362,10 @@ def plan_survey(args) -> tuple[Heightfield, list[Camera], dict, tuple[float, flo
 
 
 def render_views(args, out: Path, cams: list[Camera], rig: CausticRig, cam_ob, shots: list[dict]):
-    """Render every view with and without caustics; write the PNGs. Returns (depths, clean sRGB8 images)."""
-    depths, cleans = [], []
+    """Render every view with and without caustics, put the water (if any) in front of the photo;
+    write the PNGs. Returns (depths, sRGB8 images the sparse points take their colours from)."""
+    depths, colour_sources = [], []
+    water = args.water_model
     with tempfile.TemporaryDirectory(prefix="make_survey_") as tmp:
         tmp = Path(tmp)
         for j, cam in enumerate(cams):
@@ -341,25 +373,41 @@ def render_views(args, out: Path, cams: list[Camera], rig: CausticRig, cam_ob, s
             set_camera_pose(cam_ob, cam)
             rig.set_shot(j)
             lin_c, depth = render_exr(tmp, "caustic_")
-            if args.clean:
+            if args.clean and args.caustic_strength > 0:
                 rig.set_shot(None)
                 lin_g, _ = render_exr(tmp, "clean_")
-            else:   # no ground truth: the sparse points take their colours from the photos
+            else:   # no caustics: the photo is its own ground truth (before the water)
                 lin_g = lin_c
             img_g = linear_to_srgb8(lin_g)
-            write_png(out / "images" / cam.name, linear_to_srgb8(lin_c))
+            shots[j]["linear_mean_ratio"] = float(lin_c.mean() / max(lin_g.mean(), 1e-12))
+            if water is not None:
+                rng = depth * ray_lengths(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
+                lin_c = apply_water(lin_c, rng, water)
+                shots[j]["range_m"] = [float(np.percentile(rng, 1)), float(np.percentile(rng, 99))]
+            img_c = linear_to_srgb8(lin_c)
+            write_png(out / "images" / cam.name, img_c)
             if args.clean:
                 write_png(out / "clean" / cam.name, img_g)
             depths.append(depth)
-            cleans.append(img_g)
+            # sparse points: SfM colours them from the photos; without water the clean views
+            # (the survey's sparse colours as they always were)
+            colour_sources.append(img_c if water is not None else img_g)
             shots[j]["image"] = cam.name
-            shots[j]["linear_mean_ratio"] = float(lin_c.mean() / max(lin_g.mean(), 1e-12))
             if args.save_depth:
                 (out / "depth").mkdir(exist_ok=True)
                 np.save(out / "depth" / (Path(cam.name).stem + ".npy"), depth)
             log(f"view {j + 1}/{len(cams)} {cam.name} rendered in {time.time() - t0:.1f} s "
                 f"(mean caustic/clean {shots[j]['linear_mean_ratio']:.3f})")
-    return depths, cleans
+    return depths, colour_sources
+
+
+def _water_metadata(args, shots) -> dict | None:
+    if args.water_model is None:
+        return None
+    ranges = np.array([s["range_m"] for s in shots if "range_m" in s])
+    return dict(args.water_model, model="I = J exp(-attenuation r) + veiling_light (1 - exp(-backscatter r)), "
+                "per linear channel, r the range along the ray (m); clean/ holds J",
+                range_m=[float(ranges[:, 0].min()), float(ranges[:, 1].max())] if len(ranges) else None)
 
 
 def survey_metadata(args, cams, path_info, terrain_size, light_dir, objects, obj_info, shots,
@@ -378,6 +426,7 @@ def survey_metadata(args, cams, path_info, terrain_size, light_dir, objects, obj
         "path": path_info,
         "terrain_size_m": list(terrain_size),
         "sun_direction": light_dir.tolist(),
+        "water": _water_metadata(args, shots),
         "objects": obj_info,
         "cameras": [{"name": c.name, "image_id": c.image_id, "R": c.R.tolist(), "t": c.t.tolist(),
                      "center": c.center.tolist(),

@@ -116,7 +116,8 @@ def wander_layout(views: int, footprint_along: float, footprint_across: float, o
 
 def make_cameras(args, hf: Heightfield) -> tuple[list[Camera], dict]:
     """Survey cameras (COLMAP convention) flying a lawnmower pattern (or a wandering track) at
-    ``args.altitude`` above the seabed."""
+    ``args.altitude`` above the seabed, rising and sinking by ``args.altitude_swing`` metres
+    (a sine over ``args.altitude_period`` views) when that is set."""
     fx, fy, cx, cy = intrinsics(args.width, args.height, args.hfov)
     across = 2 * args.altitude * math.tan(math.radians(args.hfov) / 2)   # image width on the ground
     along = across * args.height / args.width
@@ -126,6 +127,10 @@ def make_cameras(args, hf: Heightfield) -> tuple[list[Camera], dict]:
         xy, heading, info = lawnmower_layout(args.views, along, across, args.overlap, args.sidelap, args.lines)
     rng = np.random.default_rng([args.seed, 11])
     z = hf.mean_around(xy[:, 0], xy[:, 1], 0.8) + args.altitude + rng.normal(0, 0.05, len(xy))
+    swing = getattr(args, "altitude_swing", 0.0)
+    if swing:   # a diver rising and sinking: the same seabed seen from several ranges
+        period = max(2.0, getattr(args, "altitude_period", 40.0))
+        z = z + swing * np.sin(2 * np.pi * np.arange(len(xy)) / period)
     cams = []
     pitch = math.radians(args.pitch)
     for i, ((x, y), psi, zc) in enumerate(zip(xy, heading, z)):
