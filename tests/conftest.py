@@ -111,12 +111,15 @@ def bpy_session():
         addon.unregister()
 
 
-def write_rendered_scene(root, *, n_views=8, width=48, height=36, n_gauss=300, seed=0, noise=0.02):
+def write_rendered_scene(root, *, n_views=8, width=48, height=36, n_gauss=300, seed=0, noise=0.02,
+                         heights=None, water=None):
     """A survey whose images are renders of known Gaussians (so training can fit them exactly).
 
-    Ground-truth Gaussians lie on a bumpy patch z ~ 0 seen from cameras ~2.5 m above; the COLMAP
-    model gets the true poses and, as sparse points, the true centres plus ``noise`` metres.
-    Returns the ground-truth GaussianSet.
+    Ground-truth Gaussians lie on a bumpy patch z ~ 0 seen from cameras ~2.5 m above (or at
+    ``heights[i]``); the COLMAP model gets the true poses and, as sparse points, the true centres
+    plus ``noise`` metres. With ``water`` (coefficients as :meth:`Medium.values` gives them) the
+    photos are the renders seen through it (the trainer's own water model) and ``clean/`` holds
+    the true colour. Returns the ground-truth GaussianSet.
     """
     import pycolmap
     import torch
@@ -141,7 +144,7 @@ def write_rendered_scene(root, *, n_views=8, width=48, height=36, n_gauss=300, s
     rec.add_camera_with_trivial_rig(cam)
     for i in range(n_views):
         a = 2 * np.pi * i / n_views
-        c = np.array([0.5 * np.cos(a), 0.4 * np.sin(a), 2.5])
+        c = np.array([0.5 * np.cos(a), 0.4 * np.sin(a), 2.5 if heights is None else heights[i]])
         R, t = look_at_pose(c, [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
         name = f"view_{i:03d}.png"
         im = pycolmap.Image(name=name, keypoints=np.zeros((0, 2)), camera_id=1, image_id=i + 1)
@@ -154,7 +157,15 @@ def write_rendered_scene(root, *, n_views=8, width=48, height=36, n_gauss=300, s
                            (gt.means, gt.log_scales, gt.quats, gt.logit_opacities, gt.sh)),
                          torch.tensor(view, dtype=torch.float32), torch.tensor(K, dtype=torch.float32),
                          width, height)
-        write_image(root / "images" / name, out.rgb.clamp(0, 1).numpy())
+        rgb = out.rgb
+        if water is not None:
+            from recgs_addon.core.model.medium import Medium, ray_lengths
+
+            write_image(root / "clean" / name, rgb.clamp(0, 1).numpy())
+            with torch.no_grad():
+                rgb = Medium.from_values(water).see(rgb, out.alpha, out.depth,
+                                                    ray_lengths(width, height, fx, fx, width / 2, height / 2))
+        write_image(root / "images" / name, rgb.clamp(0, 1).numpy())
     noisy = means + rng.normal(0, noise, means.shape)
     for j in range(n_gauss):
         rec.add_point3D(noisy[j], pycolmap.Track(), (cols[j] * 255).astype(np.uint8))

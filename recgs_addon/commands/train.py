@@ -26,7 +26,7 @@ from pathlib import Path
 
 from ..core.caustics.config import CAUSTIC_MODES, ESTIMATORS, MODES, CausticConfig
 from ..core.errors import RecGSError
-from ..core.train.config import DEFAULT_STRATEGY, DENSITY_DEFAULTS
+from ..core.train.config import DEFAULT_STRATEGY, DENSITY_DEFAULTS, MEDIUM_MODES
 from .events import StopSignals, _finite_tree, _json_default, emit, fail, finite
 
 
@@ -54,6 +54,10 @@ def add_train_arguments(p) -> None:
                    help=f"density control (default {DEFAULT_STRATEGY}): adc (INRIA's clone/split by screen gradient) "
                         "or mcmc (relocate faded Gaussians under a fixed budget, 3DGS-MCMC; 2-3.5 dB lower held-out "
                         "than adc in 5-minute runs on clean surveys)")
+    p.add_argument("--medium", choices=MEDIUM_MODES, default=None,
+                   help="the water between seabed and camera (attenuation and backscatter), fitted with the "
+                        "Gaussians so that they hold the seabed's true colour: auto (default) where the survey sees "
+                        "each point from several ranges and the fitted water changes the photos measurably; on; off")
     p.add_argument("--downscale", type=int, default=1,
                    help="train at the photo size divided by N (after --max-side): 2 or 4 for quick trials")
     p.add_argument("--max-side", type=int, default=None,
@@ -210,7 +214,7 @@ def run_train(args) -> int:
                          budget=_parse_budget(args.budget),
                          compiled=False if args.eager else (True if args.compile_first else None),
                          keep_best=False if args.keep_last else None,
-                         strategy=args.density)
+                         strategy=args.density, medium=args.medium)
             caustic = dict(mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
                            caustic_k=args.caustic_k, caustic_model=args.caustic_model, warmup=args.warmup,
                            recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,
@@ -231,9 +235,11 @@ def run_train(args) -> int:
         plan = _plan(args, method, trainer)
         trainer.start_clock(t_command)
         # what _finish renders: held-out views (outputs, final scores), every training view
-        # (views per Gaussian), every view again at most 400 px (coverage)
+        # (views per Gaussian), every view again at most 400 px (coverage), and with water every
+        # training view's range (its true-colour photo) and a few to decide on the water
         n_train, n_test = len(trainer.data.train_ids), len(trainer.data.test_ids)
-        trainer.finishing_renders = lambda: 2 * n_test + 2 * n_train + n_test + method.finishing_renders()
+        trainer.finishing_renders = lambda: (2 * n_test + 2 * n_train + n_test + method.finishing_renders()
+                                             + (n_train + 8 if trainer.medium is not None else 0))
     except RecGSError as exc:
         return fail(str(exc))
 
@@ -275,6 +281,9 @@ def _plan(args, method, trainer):
         raise RecGSError(f"--max-memory must be a number of gigabytes above 0, got {args.max_memory}")
     plan = plan_run(trainer, method.state_bytes(), limit, caustics=method.ccfg.mode in CAUSTIC_MODES)
     lines = plan.lines()
+    if trainer.cfg.medium != "off":
+        lines.append(f"water: {'modelled' if trainer.medium is not None else 'not modelled'} "
+                     f"({trainer.medium_info['reason']})")
     if getattr(method, "estimator_why", None):
         lines.append(f"caustic estimator: {method.ccfg.estimator} ({method.estimator_why})")
     emit("plan", lines=lines, **plan.summary())
@@ -341,6 +350,8 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
     from ..core.outputs.exports import write_outputs
     from ..core.outputs.report import write_run_report
 
+    if reason != "stopped":
+        trainer.decide_medium()   # auto: the water is kept where it changes the photos measurably
     checkpoint(trainer)
     outputs = write_outputs(method, out)
     if reason == "stopped":
@@ -360,6 +371,7 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
         "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
         "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"),
         "psnr_test_captured": final.get("psnr_captured"), "view_support": support, "coverage": coverage,
+        "medium": trainer.medium_summary(),
         "coverage_sparse": {"median_views": plan.views_per_point, "median_passes": plan.passes_per_point},
         "plan": plan.summary(), **outputs,
         "compile": trainer.compiler.summary(), "skipped_steps": trainer.skipped_steps,

@@ -408,7 +408,9 @@ class RecGS(Estimates, Method):
         with tr.using(snap):
             cap, ref, nll, gt = [], [], [], []
             for i in ids:
-                rgb = tr.render_view(i).clamp(0, 1)
+                out = tr.render_output(i, seen=False)
+                true = out.rgb.clamp(0, 1)
+                rgb = tr.as_seen(out, self.data.view(i, 1)[0]).clamp(0, 1)
                 photo = self.data.view(i, 1)[1]
                 cap.append(psnr(rgb, photo))
                 if self.references is not None and i in self.references:
@@ -418,7 +420,7 @@ class RecGS(Estimates, Method):
                     nll.append(float((w * self.gain_model(likelihood.log_ratio(photo, rgb))).mean() / w.mean()))
                 g = self.data.gt_view(i)
                 if g is not None:
-                    gt.append(psnr(rgb, g))
+                    gt.append(psnr(true, g))
         out["psnr_captured"] = round(sum(cap) / len(cap), 4)
         if ref:
             out["psnr_reference"] = round(sum(ref) / len(ref), 4)

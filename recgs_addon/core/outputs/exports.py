@@ -1,6 +1,10 @@
 """Files a training run leaves beside its PLY (no bpy):
 
-* ``renders/NAME.png`` (+ ``.exr``): held-out views rendered by the final model;
+* ``renders/NAME.png`` (+ ``.exr``): held-out views rendered by the final model (in the
+  seabed's true colour where the run modelled the water);
+* where the run modelled the water: ``medium.json`` (the fitted coefficients) and
+  ``truecolour/NAME.png`` (+ ``.exr``): each training photo (caustic-free in the caustic modes)
+  taken out of the water along the model's range, in the seabed's true colour;
 * caustic modes: ``caustic/NAME.exr`` (the additive caustic estimate C of each training view,
   float, signed) and ``decaustic/NAME.png`` (+ ``.exr``): the caustic-free image ``I - C``
   (clipped to [0, 1] in the PNG only).
@@ -10,12 +14,15 @@ ground truth (and of the captured ones, for reference) where the survey has grou
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..io.atomic import atomic_path
 from ..io.images import write_image
+from ..model.medium import linear_to_srgb, out_of_water, srgb_to_linear
 from ..train.losses import psnr
 
 
@@ -30,7 +37,7 @@ def write_outputs(method, out: Path) -> dict:
     data = trainer.data
     cams = data.scene.cameras
     for i in data.test_ids:
-        rgb = trainer.render_view(i).clamp(0, 1).cpu().numpy()
+        rgb = trainer.render_view(i, seen=False).clamp(0, 1).cpu().numpy()
         stem = _stem(cams[i].name)
         write_image(out / "renders" / f"{stem}.png", rgb)
         write_image(out / "renders" / f"{stem}.exr", rgb)
@@ -51,8 +58,47 @@ def write_outputs(method, out: Path) -> dict:
         write_image(out / "decaustic" / f"{stem}.exr", free.cpu().numpy())
         if gt is not None:
             cleaned.append(psnr(torch.clamp(free, 0, 1), gt))
+    if trainer.medium is not None:
+        result.update(write_true_colour(method, out))
     if captured:
         result["psnr_captured_gt"] = float(np.mean(captured))
     if cleaned:
         result["psnr_decaustic_gt"] = float(np.mean(cleaned))
     return result
+
+
+@torch.no_grad()
+def true_colour_photo(trainer, index: int, image: torch.Tensor) -> torch.Tensor:
+    """(H, W, 3) a training view's photo (sRGB) taken out of the water along the model's range
+    at each pixel (:func:`~..model.medium.out_of_water`, the direct signal's gain capped)."""
+    out = trainer.render_output(index, seen=False)
+    cam = trainer.data.view(index, 1)[0]
+    rng = (out.depth / out.alpha.clamp_min(1e-4) * trainer.ray_len(cam)).cpu().numpy()
+    lin = srgb_to_linear(image.clamp(0, 1)).cpu().numpy()
+    true = out_of_water(lin, rng, trainer.medium.values())
+    return linear_to_srgb(torch.from_numpy(true.astype(np.float32)))
+
+
+def write_true_colour(method, out: Path) -> dict:
+    """``medium.json`` and ``truecolour/`` (see the module); returns their PSNR against ground
+    truth where the survey has it."""
+    trainer = method.trainer
+    data = trainer.data
+    summary = trainer.medium_summary()
+    with atomic_path(out / "medium.json", "medium") as tmp:
+        tmp.write_text(json.dumps({
+            "model": "seen = J exp(-attenuation r) + veil (1 - exp(-backscatter r)), per linear sRGB channel, "
+                     "r the range along the ray in scene units (metres where the survey's poses are in metres)",
+            **summary}, indent=2))
+    scores = []
+    for i in data.train_ids:
+        free = method.decaustic_image(i)
+        image = data.view(i, 1)[1] if free is None else free
+        true = true_colour_photo(trainer, i, image).clamp(0, 1)
+        stem = _stem(data.scene.cameras[i].name)
+        write_image(out / "truecolour" / f"{stem}.png", true.numpy())
+        write_image(out / "truecolour" / f"{stem}.exr", true.numpy())
+        gt = data.gt_view(i)
+        if gt is not None:
+            scores.append(psnr(true, gt))
+    return {"psnr_truecolour_gt": float(np.mean(scores))} if scores else {}

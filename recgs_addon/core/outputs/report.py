@@ -49,6 +49,8 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
             ("held-out SSIM vs ground truth", _f(metrics.get("ssim_test_gt"), 4)),
             ("training images as captured, PSNR vs ground truth (dB)", _f(metrics.get("psnr_captured_gt"))),
             ("caustic-free training images, PSNR vs ground truth (dB)", _f(metrics.get("psnr_decaustic_gt"))),
+            ("true-colour training images, PSNR vs ground truth (dB)", _f(metrics.get("psnr_truecolour_gt"))),
+            ("water", (metrics.get("medium") or {}).get("reason")),
             ("caustic estimator", metrics.get("estimator") and
              f"{metrics['estimator']} ({metrics.get('estimator_why', '')})"),
             ("caustic filter size k", metrics.get("caustic_k")),
@@ -109,6 +111,7 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
                   f"Median {sup['median_views']:.0f} training views carry a Gaussian (blending weight of at least "
                   f"one pixel); {100 * sup['share_le2']:.0f} % are carried by 2 or fewer, whose colours are "
                   f"fitted to the light of those few photos.", "", "![view support](report/view_support.png)"]
+    lines += _water_section(metrics.get("medium") or {})
     rec = metrics.get("recurrences", [])
     if rec:
         plot.line_chart(rd / "c_change.png", [("mean |dC| / mean |C|", [r["recurrence"] for r in rec],
@@ -148,6 +151,29 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
     with atomic_path(path, "report") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     return path
+
+
+def _water_section(medium: dict) -> list[str]:
+    """The fitted water: coefficients per channel (and what the sparse points gave before training)."""
+    coef = medium.get("coefficients")
+    if not coef:
+        return []
+    rgb = lambda v: " / ".join(f"{x:.3f}" for x in v)  # noqa: E731
+    lines = ["", "## The water", "",
+             "Fitted with the Gaussians, which hold the seabed's true colour; `medium.json` has the numbers and "
+             "`truecolour/` the photos taken out of the water. Per scene unit (metres where the survey's poses "
+             f"are in metres), red / green / blue; {medium.get('reason', '')}.", "",
+             "| | attenuation | backscatter | veil (linear) |", "|---|---|---|---|",
+             f"| fitted | {rgb(coef['attenuation'])} | {rgb(coef['backscatter'])} | {rgb(coef['veil'])} |"]
+    pre = medium.get("prefit_coefficients")
+    if pre:
+        lines.append(f"| from the sparse points, before training | {rgb(pre['attenuation'])} | "
+                     f"{rgb(pre['backscatter'])} | {rgb(pre['veil'])} |")
+    if medium.get("range_p5_p95"):
+        lo, hi = medium["range_p5_p95"]
+        lines += ["", f"Ranges seen: {lo:.2f} to {hi:.2f} (5th to 95th percentile); each point is seen from "
+                      f"ranges a median x{medium['range_spread']:.2f} apart."]
+    return lines
 
 
 #: A decision between two models whose ground-truth scores differ by less than this is right

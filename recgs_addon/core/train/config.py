@@ -39,6 +39,9 @@ DENSITY_DEFAULTS = {
 #: +2.0 dB held-out on the 24-photo sample and +3.0 and +3.5 dB on a 144-frame dive survey
 #: (benchmarks/RESULTS.md#training-density-default).
 DEFAULT_STRATEGY = "adc"
+#: The water model's settings (core/train/water.py): auto fits it where the survey sees each
+#: point from several ranges and keeps it where it changes the photos measurably.
+MEDIUM_MODES = ("auto", "on", "off")
 
 
 @dataclass
@@ -95,6 +98,8 @@ class TrainConfig:
     log_every: int = 50
     background: tuple = (0.0, 0.0, 0.0)
     compiled: Optional[bool] = None      # rasterizer through torch.compile: None = when available
+    medium: str = "auto"                 # water (attenuation, backscatter) fitted with the Gaussians:
+                                         # "auto" (where the survey can tell it from colour), "on", "off"
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
@@ -121,6 +126,8 @@ class TrainConfig:
             raise RecGSError(f"relocate_opacity must be between 0 and 1, got {self.relocate_opacity}")
         if self.strategy not in DENSITY_DEFAULTS:
             raise RecGSError(f"unknown density strategy {self.strategy!r} (choose {' or '.join(DENSITY_DEFAULTS)})")
+        if self.medium not in MEDIUM_MODES:
+            raise RecGSError(f"unknown medium setting {self.medium!r} (choose {', '.join(MEDIUM_MODES)})")
         if self.holdout_every < 0:
             raise RecGSError(f"holdout every must be 0 (hold out none) or a positive number, got {self.holdout_every}")
         if not 0 <= self.seed < 2 ** 64:   # what numpy's and torch's generators take

@@ -30,8 +30,18 @@ class EvaluationMixin:
 
     # --- snapshots (a method that keeps or restores a model uses these) -----------------
     def snapshot(self) -> dict:
-        """A copy of the model: parameters and the active SH degree."""
-        return {"params": {n: v.detach().clone() for n, v in self.params.items()}, "sh_degree": self.sh_degree}
+        """A copy of the model: parameters, the active SH degree and the water's coefficients."""
+        return {"params": {n: v.detach().clone() for n, v in self.params.items()}, "sh_degree": self.sh_degree,
+                "medium": None if self.medium is None else self.medium.raw.detach().clone()}
+
+    def _swap_medium(self, raw) -> Optional[torch.Tensor]:
+        """Put ``raw`` into the water's coefficients; returns what was there."""
+        if self.medium is None or raw is None:
+            return None
+        old = self.medium.raw.detach().clone()
+        with torch.no_grad():
+            self.medium.raw.copy_(raw)
+        return old
 
     @contextlib.contextmanager
     def using(self, snap: dict):
@@ -39,10 +49,12 @@ class EvaluationMixin:
         trainer's own parameters, optimiser and statistics untouched)."""
         saved = self.params, self.sh_degree
         self.params, self.sh_degree = snap["params"], snap["sh_degree"]
+        saved_medium = self._swap_medium(snap.get("medium"))
         try:
             yield self
         finally:
             self.params, self.sh_degree = saved
+            self._swap_medium(saved_medium)
 
     def restore(self, snap: dict) -> None:
         """Go back to a ``snapshot()``: its parameters with fresh Adam moments and gradient
@@ -51,6 +63,7 @@ class EvaluationMixin:
         self.optimizer = self._make_optimizer()
         self.stats = density.GradientStats.zeros(self.params["means"].shape[0], self.device)
         self.sh_degree = snap["sh_degree"]
+        self._swap_medium(snap.get("medium"))
 
     def restart_plateau(self, forget_best: bool = False) -> None:
         """Start counting evaluations without gain afresh (``forget_best``: and the best score
@@ -61,24 +74,27 @@ class EvaluationMixin:
 
     # --- evaluation ---------------------------------------------------------------------
     @torch.no_grad()
-    def render_output(self, index: int):
+    def render_output(self, index: int, seen: bool = True):
         """The whole :class:`~..render.rasterizer.RenderOutput` (rgb, alpha, depth, ...) of
-        camera ``index`` at the training resolution."""
+        camera ``index`` at the training resolution: its ``rgb`` as the camera sees it through
+        the water (``seen``; what the photos hold) or the seabed's true colour."""
         t = time.perf_counter()
         cam, _ = self.data.view(index, 1)
         viewmat, K = view_tensors(cam, self.device)
         p = self.params
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
-                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                      background=torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device),
-                      compiled=self.compiler.compiled())
+                     viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
+                     background=self._background(), compiled=self.compiler.compiled())
+        if seen and self.medium is not None:
+            out = out._replace(rgb=self.as_seen(out, cam))
         dt = time.perf_counter() - t
         self._render_s = dt if self._render_s is None else 0.8 * self._render_s + 0.2 * dt
         return out
 
-    def render_view(self, index: int) -> torch.Tensor:
-        """(H, W, 3) render of camera ``index`` at the training resolution (not clamped)."""
-        return self.render_output(index).rgb
+    def render_view(self, index: int, seen: bool = True) -> torch.Tensor:
+        """(H, W, 3) render of camera ``index`` at the training resolution (not clamped), as
+        seen through the water or (``seen=False``) in true colour."""
+        return self.render_output(index, seen).rgb
 
     def heldout_ids(self, ids: Optional[list[int]] = None) -> list[int]:
         """The held-out views a score is taken on (``ids``, default all, cut to ``eval_views``)."""
@@ -107,7 +123,9 @@ class EvaluationMixin:
             return {}
         ps, ss, pg, sg, pc = [], [], [], [], []
         for i in ids:
-            rgb = self.render_view(i).clamp(0, 1)
+            out = self.render_output(i, seen=False)
+            true = out.rgb.clamp(0, 1)   # the seabed's true colour: what a ground truth holds
+            rgb = true if self.medium is None else self.as_seen(out, self.data.view(i, 1)[0]).clamp(0, 1)
             photo = self.data.view(i, 1)[1]
             ref = self.objective.reference(i, photo, rgb)
             ps.append(psnr(rgb, ref))
@@ -115,8 +133,8 @@ class EvaluationMixin:
             ss.append(float(ssim(rgb, ref)))
             gt = self.data.gt_view(i)
             if gt is not None:
-                pg.append(psnr(rgb, gt))
-                sg.append(float(ssim(rgb, gt)))
+                pg.append(psnr(true, gt))
+                sg.append(float(ssim(true, gt)))
         out = {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "psnr_captured": float(np.mean(pc))}
         if pg:
             out.update(psnr_gt=float(np.mean(pg)), ssim_gt=float(np.mean(sg)))

@@ -38,6 +38,7 @@ from .evaluation import EvaluationMixin
 from .losses import training_loss
 from .objective import Objective
 from .progress import Progress, ProgressMixin
+from .water import MediumMixin
 
 
 PARAM_NAMES = ("means", "log_scales", "quats", "logit_opacities", "sh_dc", "sh_rest")
@@ -52,7 +53,7 @@ class TrainingDiverged(RecGSError):
     """NaN or Inf in the loss, the parameters or the optimiser's moments."""
 
 
-class Trainer(EvaluationMixin, DensityMixin, ProgressMixin):
+class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
     """One training run. ``run()`` until done or told to stop; ``state_dict()`` to checkpoint.
 
     What it fits is its :class:`~.objective.Objective` (``set_objective``): the photos by
@@ -72,8 +73,9 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin):
         torch.manual_seed(cfg.seed)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.np_rng = np.random.default_rng(cfg.seed)
-        if gaussians is None:
-            gaussians = init_from_points(data.scene.points, data.scene.colors, sh_degree=0)
+        self._init_medium()   # the water, where the survey can tell it (water.py)
+        if gaussians is None:   # from the points' true colours (the photos' where there is no water)
+            gaussians = init_from_points(data.scene.points, self.true_point_colours(), sh_degree=0)
         if len(gaussians) == 0:
             raise RecGSError("no Gaussians to train (the model has no points)")
         self.extent = data.scene.extent()
@@ -207,7 +209,9 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin):
         p = {n: rg.track(n, v, cols=k - 1 if n == "sh_rest" else None) for n, v in self.params.items()}
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (p["sh_dc"], p["sh_rest"]),
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                     background=torch.tensor(c.background, dtype=torch.float32, device=self.device), compiled=path, gather=rg)
+                     background=self._background(), compiled=path, gather=rg)
+        if self.medium is not None:   # fit the photos as seen through the water
+            out = out._replace(rgb=self.as_seen(out, cam))
         target, weight = self.objective.target(index, img, out.rgb.detach())
         loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight,
                              self.objective.loss_kind,
@@ -258,6 +262,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin):
         if self.objective_optimizer is not None:
             self.objective_optimizer.step()
             self.objective_optimizer.zero_grad(set_to_none=True)
+        self._medium_step()
         self.step += 1
         if self.densifying() and self.step >= c.densify_from and self.step % c.densify_every == 0:
             self.densify()
@@ -394,6 +399,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin):
             "since_best": self.since_best, "reset_done": self.reset_done, "done_reason": self.done_reason,
             "objective_optimizer": None if self.objective_optimizer is None else self.objective_optimizer.state_dict(),
             "last_densify": self.last_densify, "compile_stall": self.compile_stall, "plateau_step": self.plateau_step,
+            "medium": self._medium_state(),
             "best": None if self.best is None else {
                 **self.best, "params": {n: v.detach().cpu() for n, v in self.best["params"].items()}},
         }
@@ -424,6 +430,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin):
         self.plateau_step = s.get("plateau_step")
         self._stall_measured = False   # this process's own first compiled step adds to it
         self.best = s.get("best")
+        self._load_medium_state(s.get("medium"))
         if self.objective_optimizer is not None and s.get("objective_optimizer") is not None:
             self.objective_optimizer.load_state_dict(s["objective_optimizer"])
         # limits are checked again against this run's settings (a resume may raise them)

@@ -1,0 +1,142 @@
+"""The water between the seabed and the camera: attenuation and backscatter.
+
+The revised underwater image formation model (Akkaynak and Treibitz, CVPR 2018), per linear
+colour channel, for a pixel whose ray meets the seabed at range ``r``::
+
+    seen = J * exp(-attenuation * r) + veil * (1 - exp(-backscatter * r))
+
+``J`` is the seabed's true colour (what the Gaussians hold), ``attenuation`` takes the direct
+signal (red first), ``backscatter`` is how fast the veil of light scattered towards the camera
+builds up, and ``veil`` is the water's colour at infinite range. With the rendered surface
+colour ``S = sum_i c_i alpha_i T_i`` (no background)::
+
+    seen = S * exp(-attenuation * r) + veil * (1 - exp(-backscatter * r))
+
+A survey looks at the seabed, so every pixel's ray ends on it: where the model leaves a hole
+(accumulated opacity ``alpha`` < 1) the render is a black surface at the pixel's range, not open
+water. Open water would fill a hole with the veil, which is what a far, dim stretch of seabed
+looks like too, and the photos would never ask the model to close it: its true colour would then
+show the hole (measured: dark patches on held-out views of a coastal-water survey).
+
+The model holds in linear light and photos are sRGB-encoded (8-bit PNG or JPEG), so the render
+is decoded before the water is put in front of it and the result encoded again (the plain sRGB
+curve, IEC 61966-2-1); the Gaussians keep sRGB colours like any 3DGS model.
+
+The range comes from the render's expected depth (``depth / alpha``, times the ray's length per
+unit of depth): the water is applied once a pixel, as WaterSplatting does, and the depth is not
+differentiated through, so the water never moves the geometry. Coefficients are per scene unit
+(metres where the survey's poses are in metres); :class:`Medium` learns them per
+``length`` (the survey's median range) so that a survey's scale does not change how they train.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+#: Range below which a pixel's depth is not trusted (scene units relative to ``length``).
+_MIN_ALPHA = 1e-4
+
+
+def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
+    """The sRGB decoding curve (torch, differentiable)."""
+    x = x.clamp(0.0, 1.0)
+    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
+    """The sRGB encoding curve (torch, differentiable; the power's slope is finite above 0.0031308)."""
+    x = x.clamp(0.0, 1.0)
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def _inv_softplus(x: float) -> float:
+    return math.log(math.expm1(max(x, 1e-6)))
+
+
+def _logit(p: float) -> float:
+    p = min(max(p, 1e-4), 1 - 1e-4)
+    return math.log(p / (1 - p))
+
+
+def ray_lengths(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
+                device="cpu") -> torch.Tensor:
+    """(H, W) length of each pixel's ray per unit of camera-space depth (range = depth x this)."""
+    u = (torch.arange(width, dtype=torch.float32, device=device) + 0.5 - cx) / fx
+    v = (torch.arange(height, dtype=torch.float32, device=device) + 0.5 - cy) / fy
+    return torch.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2)
+
+
+class Medium:
+    """Three coefficients per colour channel, learned with the Gaussians (see the module)."""
+
+    def __init__(self, length: float, veil=(0.05, 0.1, 0.1), attenuation: float = 0.05,
+                 backscatter: float = 0.05, device="cpu"):
+        #: scene units the coefficients are learned per (the survey's median range)
+        self.length = float(length)
+        init = [[_inv_softplus(attenuation * self.length)] * 3, [_inv_softplus(backscatter * self.length)] * 3,
+                [_logit(float(v)) for v in veil]]
+        self.raw = torch.nn.Parameter(torch.tensor(init, dtype=torch.float32, device=device))
+
+    def coefficients(self, raw: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(attenuation, backscatter per scene unit, veil colour), each (3,)."""
+        raw = self.raw if raw is None else raw
+        scale = torch.nn.functional.softplus(raw[:2]) / self.length
+        return scale[0], scale[1], torch.sigmoid(raw[2])
+
+    def see(self, surface: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor,
+            ray_len: torch.Tensor) -> torch.Tensor:
+        """(H, W, 3) what the camera sees (sRGB): ``surface`` (the render without background,
+        sRGB), its ``alpha`` and unnormalised expected ``depth`` (H, W), through the water."""
+        a = alpha.detach()
+        rng = (depth.detach() / a.clamp_min(_MIN_ALPHA) * ray_len).clamp_min(0.0).unsqueeze(-1)
+        att, back, veil = self.coefficients()
+        seen = srgb_to_linear(surface) * torch.exp(-att * rng) + veil * (1.0 - torch.exp(-back * rng))
+        return linear_to_srgb(seen)
+
+    # --- plain numbers (reports, exports) ---------------------------------------------------
+    def values(self) -> dict:
+        """The coefficients as lists of floats (per scene unit) and the length they train per."""
+        att, back, veil = (t.detach().cpu().double().tolist() for t in self.coefficients())
+        return {"attenuation": att, "backscatter": back, "veil": veil, "length": self.length}
+
+    def state_dict(self) -> dict:
+        return {"length": self.length, "raw": self.raw.detach().cpu().clone()}
+
+    @classmethod
+    def from_values(cls, values: dict, device="cpu") -> "Medium":
+        """The medium with given coefficients (:meth:`values`' layout; ``length`` defaults to 1)."""
+        m = cls(values.get("length", 1.0), device=device)
+        with torch.no_grad():
+            for row, key in ((0, "attenuation"), (1, "backscatter")):
+                x = torch.tensor(values[key], dtype=torch.float64) * m.length
+                m.raw[row] = (x + torch.log(-torch.expm1(-x))).float()     # softplus^-1, stable
+            v = torch.tensor(values["veil"], dtype=torch.float64).clamp(1e-6, 1 - 1e-6)
+            m.raw[2] = torch.log(v / (1 - v)).float()
+        return m
+
+    @classmethod
+    def from_state(cls, state: dict, device="cpu") -> "Medium":
+        m = cls(state["length"], device=device)
+        with torch.no_grad():
+            m.raw.copy_(state["raw"].to(device))
+        return m
+
+
+def through_water(true_rgb: np.ndarray, rng: np.ndarray, values: dict) -> np.ndarray:
+    """(H, W, 3) linear true colour (linear light) seen through ``rng`` (H, W) scene units of water
+    (:meth:`Medium.values`); numpy, for outputs."""
+    att, back, veil = (np.asarray(values[k], np.float64) for k in ("attenuation", "backscatter", "veil"))
+    r = np.asarray(rng, np.float64)[..., None]
+    return np.asarray(true_rgb, np.float64) * np.exp(-att * r) + veil * (1.0 - np.exp(-back * r))
+
+
+def out_of_water(seen_rgb: np.ndarray, rng: np.ndarray, values: dict, max_gain: float = 20.0) -> np.ndarray:
+    """The inverse of :func:`through_water`: a photo's true colour from its range, the direct
+    signal's gain capped at ``max_gain`` (where the water took nearly all of a channel, the
+    photo's noise would be amplified without bound)."""
+    att, back, veil = (np.asarray(values[k], np.float64) for k in ("attenuation", "backscatter", "veil"))
+    r = np.asarray(rng, np.float64)[..., None]
+    direct = np.asarray(seen_rgb, np.float64) - veil * (1.0 - np.exp(-back * r))
+    return direct * np.minimum(np.exp(att * r), max_gain)

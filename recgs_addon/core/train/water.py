@@ -1,0 +1,260 @@
+"""The water in training: the trainer fits the medium (core/model/medium.py) with the Gaussians,
+so that the Gaussians hold the seabed's true colour and the water is a few numbers beside them.
+
+With ``medium = "auto"`` (the default) a run models the water only where the survey can tell it
+from the seabed's colour:
+
+1. **Before training**, from the sparse points seen in the training views: if a point's range
+   hardly changes from view to view (the median over points of its farthest over its nearest
+   view, below :data:`MIN_RANGE_SPREAD`), water and colour are one per-channel scale and offset
+   the photos cannot separate, and the run is plain.
+2. **At the end**, if the fitted water changes the training views by less than
+   :data:`MIN_EFFECT` (mean absolute difference, 8-bit levels) between the seabed seen through
+   it and the seabed alone, the water is not measurable and is left out of the outputs.
+
+:class:`MediumMixin` is a part of :class:`~.trainer.Trainer` (its ``cfg``, ``data``, ``params``
+and ``step``); the report reads :meth:`MediumMixin.medium_summary`.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+import torch
+
+from ..model.medium import Medium, linear_to_srgb, out_of_water, ray_lengths, srgb_to_linear
+
+#: Median over sparse points of (farthest / nearest training view's range) below which the
+#: survey cannot tell water from colour (a survey flown at one height, looking straight down).
+MIN_RANGE_SPREAD = 1.05
+#: Mean change (8-bit levels) the fitted water must make to the training views to be kept.
+MIN_EFFECT = 2.0
+#: Adam's learning rate for the medium's raw parameters (softplus / logit space) in training.
+LR_MEDIUM = 0.01
+#: Adam steps of the fit to the sparse points before training.
+PREFIT_STEPS = 1500
+#: Share of the no-water fit's error the water must take away to be kept (auto).
+MIN_ERROR_GAIN = 0.1
+
+
+def _observations(data, max_points: int = 6000) -> dict:
+    """The sparse points as the training photos saw them: for each (point, view) where the point
+    projects inside the view, the range (scene units) and the photo's colour there (sRGB, a 3x3
+    mean at the training size). No occlusion test (a seabed seen from above); the fit is robust."""
+    pts = np.asarray(data.scene.points, np.float64)
+    pick = np.arange(len(pts))
+    if len(pts) > max_points:
+        pick = np.sort(np.random.default_rng(0).choice(len(pts), max_points, replace=False))
+    pts = pts[pick]
+    point, rng, colour = [], [], []
+    for i in data.train_ids:
+        cam, img = data.view(i, 1)
+        pc = pts @ cam.R.T + cam.t
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = cam.fx * pc[:, 0] / z + cam.cx
+            v = cam.fy * pc[:, 1] / z + cam.cy
+        seen = np.flatnonzero((z > 1e-6) & (u >= 1) & (u < cam.width - 1) & (v >= 1) & (v < cam.height - 1))
+        if not seen.size:
+            continue
+        col, row = u[seen].astype(np.int64), v[seen].astype(np.int64)
+        box = torch.nn.functional.avg_pool2d(img.permute(2, 0, 1)[None], 3, stride=1, padding=1)[0].permute(1, 2, 0)
+        point.append(seen)
+        rng.append(np.linalg.norm(pc[seen], axis=1))
+        colour.append(box[torch.from_numpy(row), torch.from_numpy(col)].numpy())
+    if not point:
+        return {"points": pick, "point": np.zeros(0, np.int64), "range": np.zeros(0), "colour": np.zeros((0, 3))}
+    return {"points": pick, "point": np.concatenate(point), "range": np.concatenate(rng),
+            "colour": np.concatenate(colour).astype(np.float32)}
+
+
+def range_profile(obs: dict) -> dict:
+    """The median range (scene units) of the observations and the median over points seen twice
+    or more of their farthest over their nearest view's range."""
+    r, pt = obs["range"], obs["point"]
+    if not r.size:
+        return {"median_range": 0.0, "range_spread": 1.0, "range_p5_p95": None}
+    n = len(obs["points"])
+    near = np.full(n, np.inf)
+    far = np.zeros(n)
+    np.minimum.at(near, pt, r)
+    np.maximum.at(far, pt, r)
+    twice = np.isfinite(near) & (far > near)
+    return {"median_range": float(np.median(r)),
+            "range_spread": float(np.median(far[twice] / near[twice])) if twice.any() else 1.0,
+            "range_p5_p95": [float(np.percentile(r, 5)), float(np.percentile(r, 95))]}
+
+
+def fit_from_points(obs: dict, length: float, steps: int = PREFIT_STEPS, max_observations: int = 12_000,
+                    device="cpu") -> dict:
+    """Fit the water and each sparse point's true colour to the points' colours in the photos
+    at their ranges (L1 in linear light, where the model is a sum and no power curve is paid
+    for on every step: occlusions and texture are outliers), and the same points without water
+    (one colour each, their median). Returns the fitted :class:`Medium`, the points' true colours
+    (sRGB), and both fits' mean error and the water's mean effect in 8-bit sRGB levels."""
+    point, rng, colour = obs["point"], obs["range"], obs["colour"]
+    if len(point) > max_observations:
+        keep = np.sort(np.random.default_rng(1).choice(len(point), max_observations, replace=False))
+        point, rng, colour = point[keep], rng[keep], colour[keep]
+    n = len(obs["points"])
+    pt = torch.from_numpy(point)
+    r = torch.from_numpy(rng).float().unsqueeze(1)
+    seen = torch.from_numpy(colour).float()
+    seen_lin = srgb_to_linear(seen)
+    # no water: each point's median colour
+    order = np.argsort(point, kind="stable")
+    bounds = np.flatnonzero(np.diff(point[order])) + 1
+    ids = point[order][np.concatenate([[0], bounds])] if len(order) else np.zeros(0, np.int64)
+    plain = torch.full((n, 3), 0.5)
+    if len(ids):
+        groups = np.split(colour[order], bounds)
+        plain[torch.from_numpy(ids)] = torch.from_numpy(np.stack([np.median(g, 0) for g in groups])).float()
+    medium = Medium(length, veil=[float(v) for v in seen_lin.quantile(0.01, dim=0).clamp(0.005, 0.9)])
+    true = torch.nn.Parameter(srgb_to_linear(plain))
+    opt = torch.optim.Adam([{"params": [medium.raw], "lr": 0.02}, {"params": [true], "lr": 0.02}])
+    for _ in range(steps):
+        att, back, veil = medium.coefficients()
+        fitted = true[pt] * torch.exp(-att * r) + veil * (1.0 - torch.exp(-back * r))
+        loss = (fitted - seen_lin).abs().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            true.clamp_(0.0, 1.0)
+    with torch.no_grad():
+        true_srgb = linear_to_srgb(true)
+        ones = torch.ones(len(pt))
+        fitted = medium.see(true_srgb[pt], ones, r[:, 0], ones)
+        err_plain = float((seen - plain[pt]).abs().mean()) * 255
+        err_water = float((fitted - seen).abs().mean()) * 255
+        effect = float((fitted - true_srgb[pt]).abs().mean()) * 255
+    medium.raw = torch.nn.Parameter(medium.raw.detach().to(device))
+    return {"medium": medium, "true": true_srgb.numpy(), "error_plain": err_plain,
+            "error_water": err_water, "effect_levels": effect, "observations": int(len(pt))}
+
+
+class MediumMixin:
+    """The trainer's water: set up, applied to renders, fitted, decided on (see the module)."""
+
+    def _init_medium(self) -> None:
+        """Decide on the water and fit it to the sparse points (before the Gaussians are made:
+        they start from the points' true colours, :meth:`true_point_colours`)."""
+        c = self.cfg
+        self.medium: Optional[Medium] = None
+        self.medium_optimizer: Optional[torch.optim.Adam] = None
+        self.medium_info: dict = {"mode": c.medium, "fitted": False, "kept": False, "reason": "medium off"}
+        self._ray_len: dict = {}
+        self._prefit: Optional[dict] = None
+        if c.medium == "off":
+            return
+        obs = _observations(self.data)
+        prof = range_profile(obs)
+        self.medium_info.update(prof)
+        if not prof["median_range"] > 0:
+            self.medium_info["reason"] = "no sparse point in view: no range to fit water on"
+            return
+        if c.medium == "auto" and prof["range_spread"] < MIN_RANGE_SPREAD:
+            self.medium_info["reason"] = (f"each seabed point is seen from nearly one range (farthest / nearest "
+                                          f"view x{prof['range_spread']:.2f}, below x{MIN_RANGE_SPREAD}): water "
+                                          "cannot be told from the seabed's colour")
+            return
+        fit = fit_from_points(obs, prof["median_range"], device=self.device)
+        gain = 1.0 - fit["error_water"] / max(fit["error_plain"], 1e-9)
+        self.medium_info.update(prefit={k: round(fit[k], 3) if isinstance(fit[k], float) else fit[k]
+                                        for k in ("error_plain", "error_water", "effect_levels", "observations")},
+                                prefit_coefficients=fit["medium"].values())
+        if c.medium == "auto" and (gain < MIN_ERROR_GAIN or fit["effect_levels"] < MIN_EFFECT):
+            self.medium_info["reason"] = (
+                f"water fitted to the sparse points changes their colours by {fit['effect_levels']:.1f} levels of "
+                f"255 and explains {100 * gain:.0f} % of their colour change from view to view (needs "
+                f"{MIN_EFFECT:g} levels and {100 * MIN_ERROR_GAIN:.0f} %): no measurable water")
+            return
+        self.medium = fit["medium"]
+        self.medium_optimizer = torch.optim.Adam([self.medium.raw], lr=LR_MEDIUM, eps=1e-15)
+        self._prefit = {"points": obs["points"], "true": fit["true"]}
+        self.medium_info.update(fitted=True, kept=True,
+                                reason=f"water explains {100 * gain:.0f} % of the sparse points' colour change "
+                                       f"from view to view and changes the photos by {fit['effect_levels']:.1f} "
+                                       "levels of 255")
+
+    def true_point_colours(self) -> np.ndarray:
+        """(M, 3) uint8 colours of the survey's sparse points without the water: those fitted
+        before training take their fit, the others are taken out of the water at the median range."""
+        colours = np.asarray(self.data.scene.colors)
+        if self._prefit is None:
+            return colours
+        vals = self.medium.values()
+        lin = srgb_to_linear(torch.from_numpy(colours.astype(np.float32) / 255.0)).numpy()
+        true = out_of_water(lin, np.full(len(lin), self.medium.length), vals, max_gain=4.0)
+        true = linear_to_srgb(torch.from_numpy(true.astype(np.float32))).numpy()
+        true[self._prefit["points"]] = self._prefit["true"]
+        return np.round(np.clip(true, 0, 1) * 255).astype(np.uint8)
+
+    def _background(self) -> torch.Tensor:
+        """The render's background: black under water (the veil fills what the model leaves)."""
+        bg = (0.0, 0.0, 0.0) if self.medium is not None else self.cfg.background
+        return torch.tensor(bg, dtype=torch.float32, device=self.device)
+
+    def ray_len(self, cam) -> torch.Tensor:
+        key = (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
+        if key not in self._ray_len:
+            self._ray_len[key] = ray_lengths(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, self.device)
+        return self._ray_len[key]
+
+    def as_seen(self, out, cam) -> torch.Tensor:
+        """The render ``out`` of camera ``cam`` as the camera sees it through the water (its
+        ``rgb`` unchanged without a medium)."""
+        if self.medium is None:
+            return out.rgb
+        return self.medium.see(out.rgb, out.alpha, out.depth, self.ray_len(cam))
+
+    def _medium_step(self) -> None:
+        if self.medium_optimizer is not None:
+            self.medium_optimizer.step()
+            self.medium_optimizer.zero_grad(set_to_none=True)
+
+    @torch.no_grad()
+    def decide_medium(self) -> None:
+        """``auto``: leave the water out when it changes the training views by less than
+        :data:`MIN_EFFECT` 8-bit levels (measured on up to 8 of them)."""
+        if self.medium is None:
+            return
+        ids = self.data.train_ids[:: max(1, len(self.data.train_ids) // 8)][:8]
+        diffs = []
+        for i in ids:
+            out = self.render_output(i, seen=False)
+            cam, _ = self.data.view(i, 1)
+            diffs.append(float((self.as_seen(out, cam).clamp(0, 1) - out.rgb.clamp(0, 1)).abs().mean()) * 255)
+        effect = float(np.mean(diffs))
+        self.medium_info["effect_levels"] = effect
+        if self.cfg.medium == "auto" and effect < MIN_EFFECT:
+            self.medium_info.update(kept=False, reason=f"the fitted water changes the photos by {effect:.1f} "
+                                                       f"levels of 255 on average, below {MIN_EFFECT}: left out")
+            self.medium = None
+            self.medium_optimizer = None
+
+    def medium_summary(self) -> dict:
+        """What the report and medium.json say: the decision, why, and the coefficients."""
+        info = dict(self.medium_info)
+        if self.medium is not None:
+            info["coefficients"] = self.medium.values()
+        return info
+
+    # --- state ------------------------------------------------------------------------------
+    def _medium_state(self) -> Optional[dict]:
+        if self.medium is None:
+            return None
+        return {"medium": self.medium.state_dict(), "info": self.medium_info,
+                "optimizer": self.medium_optimizer.state_dict() if self.medium_optimizer else None}
+
+    def _load_medium_state(self, s: Optional[dict]) -> None:
+        if s is None:
+            if self.medium is not None and self.step > 0:   # saved after the water was left out
+                self.medium, self.medium_optimizer = None, None
+            return
+        self.medium = Medium.from_state(s["medium"], self.device)
+        self.medium_optimizer = torch.optim.Adam([self.medium.raw], lr=LR_MEDIUM, eps=1e-15)
+        if s.get("optimizer") is not None:
+            self.medium_optimizer.load_state_dict(s["optimizer"])
+        self.medium_info = dict(s["info"])
+
