@@ -188,3 +188,33 @@ def test_pixels_without_a_surface_take_no_part_in_the_calibration():
     assert all((w[:, :30] == 0).all() for w in wts)
     # one frame: the floor is the photo itself (gain 1); more: the floor is darker than the mean
     assert all(0.999 < float(g.min()) and float(g.max()) < 3.0 for g in info["gains"].values())
+
+
+def test_gather_through_water_puts_every_frame_at_the_frames_own_range():
+    """Two frames 1.5 m and 3.5 m above the seabed, through coastal water (no caustics): taken
+    as they are, the far frame's colours differ from the near one's by the water; gathered with
+    the water's coefficients, each sample is the direct light at the near frame's range, the
+    near frame's own veil apart."""
+    water = {"attenuation": [0.5, 0.22, 0.34], "backscatter": [0.3, 0.34, 0.3], "veil": [0.012, 0.085, 0.065]}
+    att, back, veil = (torch.tensor(water[k]) for k in ("attenuation", "backscatter", "veil"))
+    views = []
+    for cx, alt in ((0.0, 1.5), (0.05, 3.5)):
+        R = torch.tensor([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+        vm = torch.eye(4)
+        vm[:3, :3], vm[:3, 3] = R, -R @ torch.tensor([cx, 0.0, alt])
+        K = torch.tensor([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
+        v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+        x, y = cx + (u - W / 2) / F * alt, -(v - H / 2) / F * alt
+        r = alt * torch.sqrt(1 + ((u - W / 2) / F) ** 2 + ((v - H / 2) / F) ** 2)
+        seen = albedo(x, y) * torch.exp(-att * r.unsqueeze(-1)) + veil * (1 - torch.exp(-back * r.unsqueeze(-1)))
+        views.append(G.PassView(linear_to_srgb(seen), torch.full((H, W), alt), torch.ones(H, W, dtype=torch.bool), vm, K))
+    plain, ok, _, none = P.gather(0, views, [[0], [1]])
+    wet, ok2, _, veil0 = P.gather(0, views, [[0], [1]], water=water)
+    assert none is None and torch.equal(ok, ok2)
+    both = ok[0] & ok[1]
+    assert both.float().mean() > 0.2
+    near, far = wet[0][both], wet[1][both]
+    # what is left is the far frame's coarser sampling of the sand's texture: no bias
+    assert (far - near).abs().mean() < 0.2 * (plain[1][both] - plain[0][both]).abs().mean()
+    assert (far - near).mean(0).abs().max() < 1e-3 < (plain[1][both] - plain[0][both]).mean(0).abs().max()
+    assert torch.allclose(wet[0] + veil0, plain[0], atol=1e-6)   # the frame itself: its veil apart

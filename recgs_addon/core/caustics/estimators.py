@@ -214,7 +214,8 @@ class Estimates:
         train, test = [pos[i] for i in data.train_ids], [pos[i] for i in data.test_ids]
         # the light first (a few seconds): without moving light C is dropped, so the plane
         # sweep and the gathers (most of the time) are not made
-        light = passes.light_statistics(views, overlap, train)
+        water = tr.medium.values() if tr.medium is not None else None
+        light = passes.light_statistics(views, overlap, train, water=water)
         if light["light_std"] is not None and light["light_std"] < LIGHT_FLOOR:
             self.pass_info = {"seconds": round(time.perf_counter() - t, 2),
                               **{k: v for k, v in light.items() if k != "correlation_s"}}
@@ -222,9 +223,11 @@ class Estimates:
         geometry.refine_geometry(views, overlap, brought)
         settings = passes.PassSettings(**({"pass_seconds": light["correlation_s"]}
                                           if light.get("correlation_s") is not None else {}))
-        est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train)
+        # with the water modelled, the frames' colours are compared at each frame's own range
+        est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train, water=water)
         if test:
-            refs, _ = passes.pass_targets(views, settings, ids=test, overlap=overlap, sources=train, gains=info["gains"])
+            refs, _ = passes.pass_targets(views, settings, ids=test, overlap=overlap, sources=train, gains=info["gains"],
+                                          water=water)
             self.references = {i: r.half() for i, r in zip(data.test_ids, refs)}
             tr.best_by = "psnr"   # the references do not follow the model
         seconds = round(time.perf_counter() - t, 2)

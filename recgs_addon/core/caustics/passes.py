@@ -51,7 +51,8 @@ import torch
 
 from ..train.coverage import DEPTH_TOL, PASS_SECONDS
 from .consensus import apply_count_gain, gain_by_count
-from .geometry import PassView, overlap_matrix, smooth, warp
+from .consensus import backproject
+from .geometry import PassView, depth_map, overlap_matrix, smooth, warp
 from .lightfield import linear_to_srgb, srgb_to_linear
 
 #: A frame that sees less than this share of another's covered pixels is not its neighbour.
@@ -112,13 +113,36 @@ def choose_passes(i: int, views: Sequence[PassView], overlap: np.ndarray, s: Pas
     return out
 
 
-def gather(i: int, views: Sequence[PassView], groups: list[list[int]], depth_tol: float = DEPTH_TOL):
+def _centre(v: PassView) -> torch.Tensor:
+    R, t = v.viewmat[:3, :3], v.viewmat[:3, 3]
+    return -(R.T @ t)
+
+
+def _water_terms(water: dict, like: torch.Tensor):
+    return tuple(torch.as_tensor(water[k], dtype=like.dtype, device=like.device)
+                 for k in ("attenuation", "backscatter", "veil"))
+
+
+def gather(i: int, views: Sequence[PassView], groups: list[list[int]], depth_tol: float = DEPTH_TOL,
+           water: Optional[dict] = None):
     """Frame ``i``'s pixels as the frames of ``groups`` saw them (``choose_passes``; ``i``
     itself first): (samples (F, H, W, 3) linear light, valid (F, H, W) bool, passes (H, W):
-    the groups with a valid frame at each pixel)."""
+    the groups with a valid frame at each pixel, veil (H, W, 3) or None).
+
+    With ``water`` (the fitted medium's coefficients, ``Medium.values()``) each sample is the
+    direct light as frame ``i`` would have seen it from its own range: the other frame's veil
+    taken off and the attenuation over the difference of the ranges put back (frames see a
+    point from different distances, and the water, not the light, makes them differ by that);
+    ``veil`` is then frame ``i``'s own, to add to the estimate."""
     vi = views[i]
     samples, valid = [], []
     passes = torch.zeros(vi.surface.shape, dtype=torch.int64, device=vi.surface.device)
+    veil_i = None
+    if water is not None:
+        pts = backproject(depth_map(vi), vi.viewmat, vi.K)
+        att, back, veil = _water_terms(water, pts)
+        r_i = torch.linalg.vector_norm(pts - _centre(vi), dim=-1).unsqueeze(-1)
+        veil_i = veil * (1 - torch.exp(-back * r_i))
     for g in groups:
         seen = torch.zeros_like(vi.covered)
         for j in g:
@@ -126,16 +150,21 @@ def gather(i: int, views: Sequence[PassView], groups: list[list[int]], depth_tol
                 sample, ok = vi.photo, vi.covered
             else:
                 sample, ok = warp(vi, views[j], depth_tol)
-            samples.append(_linear(sample))
+            lin = _linear(sample)
+            if water is not None:
+                r_j = r_i if j == i else torch.linalg.vector_norm(pts - _centre(views[j]), dim=-1).unsqueeze(-1)
+                lin = (lin - veil * (1 - torch.exp(-back * r_j))) * torch.exp(-att * (r_i - r_j))
+            samples.append(lin)
             valid.append(ok)
             seen |= ok
         passes += seen
-    return torch.stack(samples), torch.stack(valid), passes
+    return torch.stack(samples), torch.stack(valid), passes, veil_i
 
 
 def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] = None,
                    ids: Optional[Sequence[int]] = None, overlap: Optional[np.ndarray] = None,
-                   sources: Optional[Sequence[int]] = None, gains: Optional[dict] = None):
+                   sources: Optional[Sequence[int]] = None, gains: Optional[dict] = None,
+                   water: Optional[dict] = None):
     """The passes' caustic-free estimate of frames ``ids`` (default all; module docstring) and
     where to use it: (estimates (sRGB, list of (H, W, 3)), weights (list of (H, W) in [0, 1]:
     1 where at least ``min_passes`` passes saw the pixel, 0 where fewer than ``min_passes - 1``
@@ -145,14 +174,17 @@ def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] =
 
     ``overlap``: ``overlap_matrix(views)`` if already made; ``sources``: the frames whose photos
     may be gathered (default all; held-out frames get references gathered from the training
-    frames alone); ``gains``: the calibration to use (default: made from ``ids``' own photos)."""
+    frames alone); ``gains``: the calibration to use (default: made from ``ids``' own photos);
+    ``water``: the fitted water's coefficients, if the run models it (:func:`gather`): the
+    light's floor is then taken on the direct light at each frame's own range."""
     s = settings or PassSettings()
     ids = list(range(len(views))) if ids is None else list(ids)
     overlap = overlap_matrix(views, s.depth_tol) if overlap is None else overlap
-    stats, counts, passes, owns = [], [], [], []
+    stats, counts, passes, owns, veils = [], [], [], [], []
     for i in ids:
         groups = choose_passes(i, views, overlap, s, sources)
-        samples, valid, npass = gather(i, views, groups, s.depth_tol)
+        samples, valid, npass, veil = gather(i, views, groups, s.depth_tol, water)
+        veils.append(veil)
         sigma = s.floor_sigma * views[i].photo.shape[1] / 320.0
         stats.append(floor_statistic(samples, valid, s.floor_tol, sigma, s.own_weight))
         counts.append(valid.sum(0))
@@ -164,7 +196,10 @@ def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] =
         gains = gain_by_count(owns, stats, counts)
     estimates, weights, info = [], [], {"passes": [], "share": [], "gains": gains}
     for k, i in enumerate(ids):
-        estimates.append(linear_to_srgb(apply_count_gain(stats[k], counts[k], _for_counts(gains, counts[k])).clamp_min(0)))
+        lin = apply_count_gain(stats[k], counts[k], _for_counts(gains, counts[k]))
+        if veils[k] is not None:
+            lin = lin.clamp_min(0) + veils[k]
+        estimates.append(linear_to_srgb(lin.clamp_min(0)))
         cov = views[i].covered
         w = (passes[k].to(estimates[-1].dtype) - (s.min_passes - 1)).clamp(0, 1) * cov
         weights.append(w)
@@ -216,7 +251,7 @@ def floor_statistic(samples: torch.Tensor, valid: torch.Tensor, tol: float = 0.1
 
 
 def light_statistics(views: Sequence[PassView], overlap: np.ndarray, sources: Optional[Sequence[int]] = None,
-                     sigma: float = 3.0, pairs: int = 8, shared: float = 0.5) -> dict:
+                     sigma: float = 3.0, pairs: int = 8, shared: float = 0.5, water: Optional[dict] = None) -> dict:
     """How strong the moving light is and how long it stays put at a seabed point, from the
     survey itself (frames ``sources``, default all).
 
@@ -229,7 +264,9 @@ def light_statistics(views: Sequence[PassView], overlap: np.ndarray, sources: Op
     units (about 0 without caustics). For frames at each lag (whole multiples of the frame
     interval, up to :data:`MAX_LAG_S`) the share of the light's variance they have in common is
     ``1 - var(lag) / var(far)``; ``correlation_s`` is the first lag at which it falls below
-    ``shared``: frames closer than that saw the same light (None without frame times)."""
+    ``shared``: frames closer than that saw the same light (None without frame times). With
+    ``water`` the two frames' direct light is compared at ``i``'s range (:func:`gather`): the
+    water makes frames at different distances differ, not the light."""
     pool = list(range(len(views))) if sources is None else list(sources)
     times = [views[i].time for i in pool]
     timed = all(t is not None for t in times)
@@ -241,8 +278,13 @@ def light_statistics(views: Sequence[PassView], overlap: np.ndarray, sources: Op
         if int(ok.sum()) < 100:
             return None
         s = sigma * vi.photo.shape[1] / 320.0
-        a = smooth(_linear(vi.photo).mean(-1).unsqueeze(0), ok.unsqueeze(0), s)[0]
-        b = smooth(_linear(other).mean(-1).unsqueeze(0), ok.unsqueeze(0), s)[0]
+        if water is None:
+            own, seen = _linear(vi.photo), _linear(other)
+        else:
+            samples, _, _, _ = gather(i, views, [[i], [j]], water=water)
+            own, seen = samples[0].clamp_min(0), samples[1].clamp_min(0)
+        a = smooth(own.mean(-1).unsqueeze(0), ok.unsqueeze(0), s)[0]
+        b = smooth(seen.mean(-1).unsqueeze(0), ok.unsqueeze(0), s)[0]
         r = (torch.log(b + 0.01) - torch.log(a + 0.01))[ok]
         return float((1.4826 * (r - r.median()).abs().median()) ** 2)
 

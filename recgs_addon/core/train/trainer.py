@@ -309,6 +309,8 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
                 bad = int((~torch.isfinite(v)).reshape(len(v), -1).any(1).sum())
                 raise TrainingDiverged(f"training diverged: {bad} Gaussians have NaN/Inf in '{name}' at step "
                                        f"{self.step}")
+        if self.medium is not None and not bool(torch.isfinite(self.medium.raw).all()):
+            raise TrainingDiverged(f"training diverged: the water's coefficients hold NaN/Inf at step {self.step}")
         for group in self.optimizer.param_groups:
             for p in group["params"]:
                 for key, moment in self.optimizer.state.get(p, {}).items():
