@@ -408,9 +408,9 @@ class RecGS(Estimates, Method):
         with tr.using(snap):
             cap, ref, nll, gt = [], [], [], []
             for i in ids:
-                out = tr.render_output(i, seen=False)
-                true = out.rgb.clamp(0, 1)
-                rgb = tr.as_seen(out, self.data.view(i, 1)[0]).clamp(0, 1)
+                ro = tr.render_output(i, seen=False)
+                true = ro.rgb.clamp(0, 1)
+                rgb = tr.as_seen(ro, self.data.view(i, 1)[0]).clamp(0, 1)
                 photo = self.data.view(i, 1)[1]
                 cap.append(psnr(rgb, photo))
                 if self.references is not None and i in self.references:
