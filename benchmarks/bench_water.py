@@ -93,9 +93,9 @@ def decisions(out: Path) -> None:
                           "reason": info["reason"]}), flush=True)
 
 
-def step_cost(out: Path, steps: int = 60, blocks: int = 4) -> None:
-    """Seconds a step with the water against without, on one model (dive-water, after 600 plain
-    steps so the model has grown), blocks alternated."""
+def step_cost(out: Path, steps: int = 60, blocks: int = 4, grown=(600, 2500)) -> None:
+    """Seconds a step with the water against without, on one model (dive-water, after each of
+    ``grown`` plain steps, so the model has grown), blocks alternated."""
     import torch
 
     from recgs_addon.core.train.config import preset
@@ -105,20 +105,23 @@ def step_cost(out: Path, steps: int = 60, blocks: int = 4) -> None:
     tr = make_trainer(scene, preset("default", medium="on", eval_every=10**9))
     medium = tr.medium
     tr.medium = None
-    for _ in range(600):
-        tr.train_step()
-    times = {"water": [], "plain": []}
-    for b in range(blocks):
-        for name in ("plain", "water") if b % 2 == 0 else ("water", "plain"):
-            tr.medium = medium if name == "water" else None
-            t = time.perf_counter()
-            for _ in range(steps):
-                tr.train_step()
-            times[name].append((time.perf_counter() - t) / steps)
-    w, p = sum(times["water"]) / blocks, sum(times["plain"]) / blocks
-    print(json.dumps({"gaussians": int(tr.params["means"].shape[0]), "threads": torch.get_num_threads(),
-                      "seconds_per_step_plain": round(p, 4), "seconds_per_step_water": round(w, 4),
-                      "ratio": round(w / p, 3)}), flush=True)
+    for until in grown:
+        tr.medium = None
+        while tr.step < until:
+            tr.train_step()
+        times = {"water": [], "plain": []}
+        for b in range(blocks):
+            for name in ("plain", "water") if b % 2 == 0 else ("water", "plain"):
+                tr.medium = medium if name == "water" else None
+                t = time.perf_counter()
+                for _ in range(steps):
+                    tr.train_step()
+                times[name].append((time.perf_counter() - t) / steps)
+        w, p = sum(times["water"]) / blocks, sum(times["plain"]) / blocks
+        print(json.dumps({"after_steps": until, "gaussians": int(tr.params["means"].shape[0]),
+                          "threads": torch.get_num_threads(), "path": tr.compiler.compiled(),
+                          "seconds_per_step_plain": round(p, 4), "seconds_per_step_water": round(w, 4),
+                          "ratio": round(w / p, 3)}), flush=True)
 
 
 def main() -> int:

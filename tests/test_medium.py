@@ -221,3 +221,31 @@ def test_true_colour_is_learned_through_the_water_and_resumes_exactly(water_scen
     assert torch.equal(resumed.medium.raw, wet.medium.raw)
     for k in wet.params:
         assert torch.equal(resumed.params[k], wet.params[k]), k
+
+
+def test_numba_path_matches_torch_values_and_gradients():
+    """The water through numba's kernels (core/train/numba_water.py) against the torch oracle,
+    clamps included (surface values beyond [0, 1], a seen value above 1)."""
+    from recgs_addon.core.train import numba_water
+
+    if numba_water.load() is None:
+        pytest.skip(f"numba unavailable: {numba_water.error()!r}")
+    gen = torch.Generator().manual_seed(5)
+    h, w = 7, 9
+    surface = torch.rand(h, w, 3, generator=gen) * 1.2 - 0.1
+    surface[0, 0] = torch.tensor([0.02, 0.5, 1.0])
+    rng = torch.rand(h, w, generator=gen) * 4 + 0.5
+    rng[1, 1] = 0.0
+    m = _medium({**COASTAL, "veil": [0.012, 0.085, 0.9]})
+    weights = torch.rand(h, w, 3, generator=gen)
+    outs = []
+    for fast in (False, True):
+        s = surface.clone().requires_grad_()
+        m.raw.grad = None
+        y = numba_water.see(s, rng, *m.coefficients()) if fast else m.see_at(s, rng)
+        (y * weights).sum().backward()
+        outs.append((y.detach(), s.grad.clone(), m.raw.grad.clone()))
+    (y0, gs0, gr0), (y1, gs1, gr1) = outs
+    assert torch.allclose(y0, y1, atol=2e-6)
+    assert torch.allclose(gs0, gs1, atol=1e-4, rtol=1e-4)
+    assert torch.allclose(gr0, gr1, atol=1e-3, rtol=1e-4)

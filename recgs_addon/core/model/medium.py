@@ -89,10 +89,19 @@ class Medium:
             ray_len: torch.Tensor) -> torch.Tensor:
         """(H, W, 3) what the camera sees (sRGB): ``surface`` (the render without background,
         sRGB), its ``alpha`` and unnormalised expected ``depth`` (H, W), through the water."""
-        a = alpha.detach()
-        rng = (depth.detach() / a.clamp_min(_MIN_ALPHA) * ray_len).clamp_min(0.0).unsqueeze(-1)
+        return self.see_at(surface, self.range_of(alpha, depth, ray_len))
+
+    @staticmethod
+    def range_of(alpha: torch.Tensor, depth: torch.Tensor, ray_len: torch.Tensor) -> torch.Tensor:
+        """(H, W) each pixel's range (scene units) from a render's ``alpha`` and unnormalised
+        expected ``depth``, not differentiated."""
+        return (depth.detach() / alpha.detach().clamp_min(_MIN_ALPHA) * ray_len).clamp_min(0.0)
+
+    def see_at(self, surface: torch.Tensor, rng: torch.Tensor) -> torch.Tensor:
+        """:meth:`see` given each pixel's range ``rng`` (H, W)."""
+        r = rng.unsqueeze(-1)
         att, back, veil = self.coefficients()
-        seen = srgb_to_linear(surface) * torch.exp(-att * rng) + veil * (1.0 - torch.exp(-back * rng))
+        seen = srgb_to_linear(surface) * torch.exp(-att * r) + veil * (1.0 - torch.exp(-back * r))
         return linear_to_srgb(seen)
 
     # --- plain numbers (reports, exports) ---------------------------------------------------

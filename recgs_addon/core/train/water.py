@@ -22,6 +22,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from . import numba_water
 from ..model.medium import Medium, linear_to_srgb, out_of_water, ray_lengths, srgb_to_linear
 
 #: Median over sparse points of (farthest / nearest training view's range) below which the
@@ -36,7 +37,7 @@ PREFIT_STEPS = 1500
 #: ... and their learning rate for the water's raw parameters.
 PREFIT_LR = 0.05
 #: Share of the no-water fit's error the water must take away to be kept (auto).
-MIN_ERROR_GAIN = 0.1
+MIN_ERROR_GAIN = 0.05
 
 
 def _observations(data, max_points: int = 6000) -> dict:
@@ -228,7 +229,11 @@ class MediumMixin:
         ``rgb`` unchanged without a medium)."""
         if self.medium is None:
             return out.rgb
-        return self.medium.see(out.rgb, out.alpha, out.depth, self.ray_len(cam))
+        rng = self.medium.range_of(out.alpha, out.depth, self.ray_len(cam))
+        if (self.compiler.compiled() == "numba" and out.rgb.dtype == torch.float32
+                and out.rgb.device.type == "cpu" and numba_water.load() is not None):
+            return numba_water.see(out.rgb, rng, *self.medium.coefficients())   # numba's threads, one pass
+        return self.medium.see_at(out.rgb, rng)
 
     def _medium_step(self) -> None:
         if self.medium_optimizer is not None:
