@@ -416,11 +416,11 @@ def test_panel_settings_round_trip_through_the_train_command_line(bpy_session):
     s = bpy.context.scene.recgs
     s.mode, s.max_minutes, s.iterations, s.budget_auto, s.budget = "recgs", 3.5, 700, False, 1234
     s.downscale, s.max_side, s.sh_degree, s.seed, s.holdout_every = 2, 800, 2, 7, 5
-    s.checkpoint_every, s.eager, s.caustic_k, s.images = 15, True, 9, "photos"
+    s.checkpoint_every, s.eager, s.caustic_k, s.images, s.medium = 15, True, 9, "photos", "off"
     argv = jobs.train_command("S", "O", train_options(s))
     args = build_parser().parse_args(argv[3:])   # after [python, -m, recgs_addon]
     fresh = bpy.data.scenes.new("round trip").recgs
     apply_train_args(fresh, args)
     for key in SETTINGS:
         assert SETTINGS[key][0](fresh) == SETTINGS[key][0](s), key
-    assert (fresh.budget_auto, fresh.budget, fresh.images) == (False, 1234, "photos")
+    assert (fresh.budget_auto, fresh.budget, fresh.images, fresh.medium) == (False, 1234, "photos", "off")

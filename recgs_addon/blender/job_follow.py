@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Optional
 
 import bpy
@@ -20,6 +21,7 @@ from . import gaussian_object as gobj
 from . import jobs
 from .job_progress import PHASE_SPANS, _ui_begin, _ui_end, _ui_update
 from .operators import add_preview, import_survey
+from .water import load_water
 from .workflow import WorkflowError
 
 #: Seconds between two runs of the timer that follows a job.
@@ -220,6 +222,10 @@ def _finish(a: ActiveJob, scene) -> None:
             s.status, s.message = "FAILED", f"reconstructed, but the import failed: {exc}"
     elif status == "done":
         s.progress = 1.0
+        if a.job.kind == "train":
+            note = load_water(scene, Path(a.out_dir)) if a.out_dir else ""
+            if note:
+                s.message = f"{s.message}; {note}"
     _ui_update(s)
 
 

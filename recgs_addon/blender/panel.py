@@ -101,6 +101,9 @@ class VIEW3D_PT_recgs_training(_RecGSPanel, bpy.types.Panel):
         sub = col.row()
         sub.active = s.mode in CAUSTIC_MODES
         sub.prop(s, "caustic_k")
+        col.prop(s, "medium")
+        if s.water:
+            layout.row().prop(s, "water_view", expand=True)
         if not busy and not engine.engine_ready():
             engine.draw_engine(layout)
         row = layout.row(align=True)

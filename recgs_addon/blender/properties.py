@@ -28,6 +28,11 @@ STATUS_ITEMS = [
 ]
 
 
+def _water_view(settings, context) -> None:
+    from .water import on_water_view
+    on_water_view(settings, context)
+
+
 class RecGSSettings(bpy.types.PropertyGroup):
     # -- scene -------------------------------------------------------------------------------
     scene_dir: StringProperty(**_PATH, name="Scene Folder", subtype="DIR_PATH",
@@ -69,6 +74,20 @@ class RecGSSettings(bpy.types.PropertyGroup):
                            description="Side of the kept low-frequency block of the caustic filter: "
                                        "0 = chosen from the residual spectrum (default); odd sizes "
                                        "fix it (9 keeps -4..+4 cycles per image, as the paper)")
+    medium: EnumProperty(name="Water", default="auto",
+                         description="The water between seabed and camera (attenuation, backscatter), fitted with "
+                                     "the Gaussians so that they hold the seabed's true colour",
+                         items=[("auto", "Auto", "Model the water where the survey sees the seabed from several "
+                                                 "ranges and the water changes the photos measurably"),
+                                ("on", "On", "Always model the water"),
+                                ("off", "Off", "Train on the photos' colours as they are")])
+    water_view: EnumProperty(name="Show", default="TRUE_COLOUR", update=_water_view,
+                             description="Show the seabed in its true colour, or as seen underwater (the fitted "
+                                         "water as the world's volume, in EEVEE and Cycles)",
+                             items=[("TRUE_COLOUR", "True Colour", "The seabed without the water"),
+                                    ("UNDERWATER", "As Seen Underwater", "The fitted water in front of the seabed")])
+    water: StringProperty(name="Fitted Water", default="",
+                          description="The water the last training job fitted (coefficients as JSON; empty: none)")
     # -- advanced ----------------------------------------------------------------------------
     preset: EnumProperty(name="Preset", default="default", description="Training schedule",
                          items=[("default", "Default", "Lean schedule: grows only what the scene needs"),
@@ -149,7 +168,7 @@ SETTINGS = {
     "seed": _copy("seed"), "holdout_every": _copy("holdout_every"), "checkpoint_every": _copy("checkpoint_every"),
     "device": _unless("device", "cpu"), "eager": _copy("eager"),
     "caustic_k": (lambda s: s.caustic_k if s.mode in CAUSTIC_MODES else None, _copy("caustic_k")[1]),
-    "images": _unless("images", "images"),
+    "images": _unless("images", "images"), "medium": _unless("medium", "auto"),
 }
 #: ``train`` options (argparse dests) that the settings hold.
 SETTINGS_OPTIONS = tuple(SETTINGS)
