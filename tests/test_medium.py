@@ -249,3 +249,25 @@ def test_numba_path_matches_torch_values_and_gradients():
     assert torch.allclose(y0, y1, atol=2e-6)
     assert torch.allclose(gs0, gs1, atol=1e-4, rtol=1e-4)
     assert torch.allclose(gr0, gr1, atol=1e-3, rtol=1e-4)
+
+
+def test_train_command_writes_the_true_colour_outputs(water_scenes, tmp_path):
+    """``train`` on a survey behind water: the plan says the water is modelled, and the job
+    leaves medium.json, truecolour/ photos closer to the true colour than the photos, true-colour
+    held-out renders, and a report with the water's section and example."""
+    import json
+    import subprocess
+
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "recgs_addon", "train", str(water_scenes / "water"), "--out", str(out),
+                           "--iterations", "150", "--holdout-every", "4", "--eager", "--gt-images", "clean"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "water: modelled" in proc.stderr
+    medium = json.loads((out / "medium.json").read_text())
+    assert medium["kept"] and len(medium["coefficients"]["attenuation"]) == 3
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["medium"]["kept"] and m["psnr_truecolour_gt"] > m["psnr_captured_gt"] + 3
+    assert len(list((out / "truecolour").glob("*.png"))) == 9
+    report = (out / "report.md").read_text()
+    assert "## The water" in report and "report/water_" in report

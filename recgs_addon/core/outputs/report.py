@@ -10,6 +10,7 @@ import numpy as np
 
 from ..caustics.config import CAUSTIC_MODES
 from ..io.atomic import atomic_path
+from ..io.images import read_image
 from ..train.plan import MIN_PASSES, coverage_advice
 from . import plot
 
@@ -112,6 +113,7 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
                   f"one pixel); {100 * sup['share_le2']:.0f} % are carried by 2 or fewer, whose colours are "
                   f"fitted to the light of those few photos.", "", "![view support](report/view_support.png)"]
     lines += _water_section(metrics.get("medium") or {})
+    lines += _water_example(out, rd, method)
     rec = metrics.get("recurrences", [])
     if rec:
         plot.line_chart(rd / "c_change.png", [("mean |dC| / mean |C|", [r["recurrence"] for r in rec],
@@ -174,6 +176,27 @@ def _water_section(medium: dict) -> list[str]:
         lines += ["", f"Ranges seen: {lo:.2f} to {hi:.2f} (5th to 95th percentile); each point is seen from "
                       f"ranges a median x{medium['range_spread']:.2f} apart."]
     return lines
+
+
+def _water_example(out: Path, rd: Path, method) -> list[str]:
+    """A training photo as captured beside its true colour (``truecolour/``) and, where the
+    survey has it, the ground truth."""
+    data = None if method is None else method.data
+    if data is None or not data.train_ids or not (out / "truecolour").is_dir():
+        return []
+    i = data.train_ids[len(data.train_ids) // 2]
+    name = Path(data.scene.cameras[i].name).stem
+    path = out / "truecolour" / f"{name}.png"
+    if not path.is_file():
+        return []
+    true = read_image(path)
+    ims, labels = [data.view(i, 1)[1].cpu().numpy(), true], ["as captured", "true colour"]
+    gt = data.gt_view(i)
+    if gt is not None:
+        ims.append(gt.cpu().numpy())
+        labels.append("ground truth")
+    plot.labelled_strip(rd / f"water_{name}.png", ims, labels)
+    return ["", f"![{name}: as captured and in true colour](report/water_{name}.png)"]
 
 
 #: A decision between two models whose ground-truth scores differ by less than this is right

@@ -282,6 +282,26 @@ def error() -> Optional[BaseException]:
     return _STATE.get("error")
 
 
+def load_module(state: dict, importer: Callable[[], object], smoke: Callable[[], None]):
+    """A module of kernels the way :func:`load` loads the rasterizer's: ``importer()`` imports
+    it after numba's cache has been pointed at ``NUMBA_CACHE_DIR``, ``smoke()`` compiles (or
+    loads) and runs it once. Kept in ``state`` (``impl``, or ``error`` with the reason); returns
+    the module, or None if numba is missing or fails here."""
+    if "impl" in state or "error" in state:
+        return state.get("impl")
+    try:
+        import numba
+        if os.environ.get("NUMBA_CACHE_DIR"):
+            numba.config.CACHE_DIR = os.environ["NUMBA_CACHE_DIR"]
+        state["impl"] = importer()
+        smoke()
+    except Exception as exc:  # ImportError (no numba), an unsupported platform, ...
+        state.clear()
+        state["error"] = exc
+        return None
+    return state["impl"]
+
+
 def disable(exc: BaseException) -> None:
     """Kernels that failed at run time: :func:`load` returns None from now on (eager torch)."""
     _STATE.clear()

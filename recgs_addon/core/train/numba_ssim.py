@@ -14,13 +14,12 @@ warm-up compiles these kernels with the rasterizer's, so a cold cache never stal
 """
 from __future__ import annotations
 
-import os
 from typing import Optional
 
 import numpy as np
 import torch
 
-from ..render.numba_kernels import run_ranges, threads
+from ..render.numba_kernels import load_module, run_ranges, threads
 from .losses import SSIM_C1, SSIM_C2, gaussian_window
 
 _STATE: dict = {}
@@ -28,23 +27,16 @@ _STATE: dict = {}
 
 def load():
     """The kernel module, or None if numba is missing or fails here (why: :func:`error`)."""
-    if "impl" in _STATE or "error" in _STATE:
-        return _STATE.get("impl")
-    try:
-        import numba
-        if os.environ.get("NUMBA_CACHE_DIR"):
-            numba.config.CACHE_DIR = os.environ["NUMBA_CACHE_DIR"]
-        from . import _numba_ssim
-        _STATE["impl"] = _numba_ssim
+    def smoke():
         g = torch.rand(2, 3, 3, generator=torch.Generator().manual_seed(0))
         b = torch.rand(2, 3, 3, generator=torch.Generator().manual_seed(1))
         ssim_term(g.requires_grad_(), b, torch.ones(2, 3)).backward()   # both signatures the loss uses
         ssim_term(g, b).backward()
-    except Exception as exc:  # ImportError (no numba), an unsupported platform, ...
-        _STATE.clear()
-        _STATE["error"] = exc
-        return None
-    return _STATE["impl"]
+
+    def kernels():
+        from . import _numba_ssim
+        return _numba_ssim
+    return load_module(_STATE, kernels, smoke)
 
 
 def error() -> Optional[BaseException]:

@@ -10,35 +10,27 @@ agree to float32 rounding, tests/test_medium.py).
 """
 from __future__ import annotations
 
-import os
 from typing import Optional
 
 import numpy as np
 import torch
 
-from ..render.numba_kernels import run_ranges, threads
+from ..render.numba_kernels import load_module, run_ranges, threads
 
 _STATE: dict = {}
 
 
 def load():
-    """The kernel module, or None if numba is missing or fails here."""
-    if "impl" in _STATE or "error" in _STATE:
-        return _STATE.get("impl")
-    try:
-        import numba
-        if os.environ.get("NUMBA_CACHE_DIR"):
-            numba.config.CACHE_DIR = os.environ["NUMBA_CACHE_DIR"]
-        from . import _numba_water
-        _STATE["impl"] = _numba_water
+    """The kernel module, or None if numba is missing or fails here (why: :func:`error`)."""
+    def smoke():
         s = torch.rand(2, 2, 3, requires_grad=True)
         coef = [torch.full((3,), 0.2, requires_grad=True) for _ in range(3)]
         see(s, torch.ones(2, 2), *coef).sum().backward()
-    except Exception as exc:  # ImportError (no numba), an unsupported platform, ...
-        _STATE.clear()
-        _STATE["error"] = exc
-        return None
-    return _STATE["impl"]
+
+    def kernels():
+        from . import _numba_water
+        return _numba_water
+    return load_module(_STATE, kernels, smoke)
 
 
 def error() -> Optional[BaseException]:
