@@ -171,6 +171,9 @@ def _water_section(medium: dict) -> list[str]:
     if pre:
         lines.append(f"| from the sparse points, before training | {rgb(pre['attenuation'])} | "
                      f"{rgb(pre['backscatter'])} | {rgb(pre['veil'])} |")
+    if medium.get("attenuation_from_points"):
+        lines += ["", "The attenuation is the sparse points' (their colour change from view to view is mostly the "
+                      "water's, and their ranges are exact); training fitted the rest."]
     if medium.get("range_p5_p95"):
         lo, hi = medium["range_p5_p95"]
         lines += ["", f"Ranges seen: {lo:.2f} to {hi:.2f} (5th to 95th percentile); each point is seen from "
