@@ -164,6 +164,17 @@ def test_caustic_mode_outputs(session, tmp_path):
     assert bpy.data.texts["RecGS report"].as_string() == (out / "report.md").read_text()
 
 
+def test_export_images_takes_the_true_colour_photos_too(session, tmp_path):
+    """A job that modelled the water (here its outputs written by hand): Export Caustic-Free
+    Images copies truecolour/ into the folder's truecolour/, with or without decaustic/."""
+    scene, name, out = session
+    (out / "truecolour").mkdir(parents=True)
+    for n in ("a.png", "b.exr"):
+        (out / "truecolour" / n).write_bytes(b"x")
+    assert bpy.ops.recgs.export_images(directory=str(tmp_path / "export")) == {"FINISHED"}
+    assert sorted(p.name for p in (tmp_path / "export" / "truecolour").iterdir()) == ["a.png", "b.exr"]
+
+
 def test_operator_errors_report_instead_of_raising(session, tmp_path, monkeypatch):
     from recgs_addon.blender import jobs
     from recgs_addon.core.io.ply import write_gaussian_ply

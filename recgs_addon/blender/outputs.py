@@ -1,4 +1,5 @@
-"""A finished job's outputs: Export Caustic-Free Images (copies ``OUT/decaustic`` to a folder)
+"""A finished job's outputs: Export Caustic-Free Images (copies ``OUT/decaustic`` to a folder,
+and ``OUT/truecolour`` to its ``truecolour`` subfolder where the job modelled the water)
 and Open Report (``report.md``, else ``metrics.json``, in a Text Editor)."""
 from __future__ import annotations
 
@@ -28,7 +29,8 @@ def _job_out(context) -> Path:
 
 
 class RECGS_OT_export_images(bpy.types.Operator):
-    """Copy the caustic-free photos written by the last caustic-removal job to a folder"""
+    """Copy the caustic-free photos written by the last caustic-removal job to a folder (and,
+    where the job modelled the water, the photos in true colour to its truecolour subfolder)"""
 
     bl_idname = "recgs.export_images"
     bl_label = "Export Caustic-Free Images"
@@ -45,9 +47,11 @@ class RECGS_OT_export_images(bpy.types.Operator):
         return _run(self, self._export, context)
 
     def _export(self, context) -> str:
-        src = _job_out(context) / "decaustic"
+        out = _job_out(context)
+        src, true_src = out / "decaustic", out / "truecolour"
         files = sorted(p for p in src.glob("*") if p.is_file()) if src.is_dir() else []
-        if not files:
+        true = sorted(p for p in true_src.glob("*") if p.is_file()) if true_src.is_dir() else []
+        if not files and not true:
             raise WorkflowError(f"{src}: no caustic-free images; train with a caustic-removal mode "
                                 "(RecGS, 2D Filter, Joint) first")
         if not self.directory:
@@ -55,7 +59,14 @@ class RECGS_OT_export_images(bpy.types.Operator):
         dst = make_folder(Path(bpy.path.abspath(self.directory)), "folder")
         for p in files:
             copy_file(p, dst / p.name, "image")
-        return f"Exported {len(files)} caustic-free images to {dst}"
+        if true:
+            tdst = make_folder(dst / "truecolour", "folder")
+            for p in true:
+                copy_file(p, tdst / p.name, "image")
+        parts = [f"{len(files)} caustic-free images"] if files else []
+        if true:
+            parts.append(f"{len(true)} in true colour (truecolour/)")
+        return f"Exported {' and '.join(parts)} to {dst}"
 
 
 class RECGS_OT_open_report(bpy.types.Operator):
