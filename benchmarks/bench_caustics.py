@@ -84,6 +84,8 @@ SURVEYS.update({
     "dive-water": DIVE + WATER + ["--seed", "41", "--caustic-strength", "0"],
     "dive-water-networks": DIVE + WATER + ["--seed", "42", "--caustic-pattern", "voronoi",
                                            "--caustic-strength", "0.9"],
+    "dive-water-clear": DIVE + ["--water", "clear", "--altitude", "2.7", "--altitude-swing", "1.1",
+                                "--save-depth", "--seed", "43", "--caustic-strength", "0"],
 })
 # Every method on one density control (adc, the caustic modes' default; plain 3DGS alone
 # defaults to mcmc), so that a method's score is the method's, not its densification's.

@@ -5,7 +5,7 @@
 * **runs**: on ``dive-water`` (green coastal water, ranges about 1.5-5 m, no caustics) plain 3DGS,
   3DGS with the water model, and the oracle (plain 3DGS on the true-colour images); on
   ``dive-water-networks`` (the same water with sharp caustic networks) also RecGS without and
-  with the water. Each run gets the same wall-clock limit, two at a time on one thread each.
+  with the water; on ``dive-water-clear`` (clear ocean water, another seabed) the first three. Each run gets the same wall-clock limit, two at a time on one thread each.
   Scores: held-out PSNR of the true-colour render against the true colour (``clean/``), of the
   true-colour photos (``truecolour/``) where the run made them, Gaussians, steps, and the fitted
   coefficients against the generator's.
@@ -40,8 +40,11 @@ RUNS = [
     ("dive-water-networks", "recgs", "recgs", ["--medium", "off"]),
     ("dive-water-networks", "recgs+water", "recgs", ["--medium", "auto"]),
     ("dive-water-networks", "oracle", "oracle", ["--medium", "off"]),
+    ("dive-water-clear", "plain", "3dgs", ["--medium", "off"]),
+    ("dive-water-clear", "water", "3dgs", ["--medium", "auto"]),
+    ("dive-water-clear", "oracle", "oracle", ["--medium", "off"]),
 ]
-DECISION_SURVEYS = ["dive-water", "dive-water-networks", "dive-none", "dive-networks", "sample-none", "networks"]
+DECISION_SURVEYS = ["dive-water", "dive-water-networks", "dive-water-clear", "dive-none", "dive-networks", "sample-none", "networks"]
 
 
 def _rel_errors(fitted: dict, truth: dict) -> dict:
