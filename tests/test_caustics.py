@@ -697,7 +697,7 @@ def test_lightfield_estimator_takes_out_bright_lines_and_keeps_the_mean_light(tm
     linear light): the light-field estimator's caustic-free training images come out closer to
     ground truth than the photos, at the photos' mean light (the survey gain brings the floor
     back up), and its held-out renders beat plain 3DGS's."""
-    from recgs_addon.core.caustics.lightfield import linear_to_srgb, srgb_to_linear
+    from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
 
     root = tmp_path / "scene"
     write_rendered_scene(root, n_views=10, width=48, height=36, n_gauss=300)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from recgs_addon.core.caustics import likelihood
-from recgs_addon.core.caustics.lightfield import linear_to_srgb, srgb_to_linear
+from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
 
 
 def _network_gains(rng, n):

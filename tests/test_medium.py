@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from recgs_addon.core.model.medium import (Medium, linear_to_srgb, out_of_water, ray_lengths, srgb_to_linear,
-                                           through_water)
+from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
+from recgs_addon.core.model.medium import Medium, out_of_water, ray_lengths, through_water
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))

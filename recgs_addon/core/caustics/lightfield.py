@@ -31,6 +31,7 @@ from typing import Iterable
 
 import torch
 
+from ..model.colour import linear_to_srgb, srgb_to_linear
 from ..model.gaussians import SH_C0
 from . import fft_filter
 from .robust import colour_gain
@@ -63,16 +64,6 @@ def light_fields(q: torch.Tensor, k: int, lam: float, tau: float = 0.0, iters: i
 def remove_light(image: torch.Tensor, field: torch.Tensor) -> torch.Tensor:
     """``(image + e) exp(-L) - e`` for a light field ``L`` (H, W): the photo under the floor light."""
     return (image + LOG_EPS) * torch.exp(-field).unsqueeze(-1) - LOG_EPS
-
-
-def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
-    x = x.clamp_min(0)
-    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
-    x = x.clamp_min(0)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
 
 
 @torch.no_grad()

@@ -35,20 +35,10 @@ import math
 import numpy as np
 import torch
 
+from .colour import linear_to_srgb, srgb_to_linear
+
 #: Range below which a pixel's depth is not trusted (scene units relative to ``length``).
 _MIN_ALPHA = 1e-4
-
-
-def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
-    """The sRGB decoding curve (torch, differentiable)."""
-    x = x.clamp(0.0, 1.0)
-    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
-    """The sRGB encoding curve (torch, differentiable; the power's slope is finite above 0.0031308)."""
-    x = x.clamp(0.0, 1.0)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
 
 
 def _inv_softplus(x: float) -> float:
@@ -101,8 +91,8 @@ class Medium:
         """:meth:`see` given each pixel's range ``rng`` (H, W)."""
         r = rng.unsqueeze(-1)
         att, back, veil = self.coefficients()
-        seen = srgb_to_linear(surface) * torch.exp(-att * r) + veil * (1.0 - torch.exp(-back * r))
-        return linear_to_srgb(seen)
+        seen = srgb_to_linear(surface.clamp(0.0, 1.0)) * torch.exp(-att * r) + veil * (1.0 - torch.exp(-back * r))
+        return linear_to_srgb(seen.clamp(0.0, 1.0))
 
     # --- plain numbers (reports, exports) ---------------------------------------------------
     def values(self) -> dict:

@@ -22,7 +22,8 @@ import torch
 
 from ..io.atomic import atomic_path
 from ..io.images import write_image
-from ..model.medium import linear_to_srgb, out_of_water, srgb_to_linear
+from ..model.colour import linear_to_srgb, srgb_to_linear
+from ..model.medium import Medium, out_of_water
 from ..train.losses import psnr
 
 

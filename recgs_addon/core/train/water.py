@@ -23,7 +23,8 @@ import numpy as np
 import torch
 
 from . import numba_water
-from ..model.medium import Medium, linear_to_srgb, out_of_water, ray_lengths, srgb_to_linear
+from ..model.colour import linear_to_srgb, srgb_to_linear
+from ..model.medium import Medium, out_of_water, ray_lengths
 
 #: Median over sparse points of (farthest / nearest training view's range) below which the
 #: survey cannot tell water from colour (a survey flown at one height, looking straight down).
