@@ -49,11 +49,10 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from ..model.colour import linear_to_srgb, srgb_to_linear
 from ..train.coverage import DEPTH_TOL, PASS_SECONDS
-from .consensus import apply_count_gain, gain_by_count
-from .consensus import backproject
+from .consensus import apply_count_gain, backproject, gain_by_count
 from .geometry import PassView, depth_map, overlap_matrix, smooth, warp
-from .lightfield import linear_to_srgb, srgb_to_linear
 
 #: A frame that sees less than this share of another's covered pixels is not its neighbour.
 MIN_OVERLAP = 0.05
@@ -118,9 +117,20 @@ def _centre(v: PassView) -> torch.Tensor:
     return -(R.T @ t)
 
 
-def _water_terms(water: dict, like: torch.Tensor):
-    return tuple(torch.as_tensor(water[k], dtype=like.dtype, device=like.device)
-                 for k in ("attenuation", "backscatter", "veil"))
+def _water_frame(vi: PassView, water: dict):
+    """Frame ``vi``'s pixels' world points and ranges, and the water's coefficients as tensors."""
+    pts = backproject(depth_map(vi), vi.viewmat, vi.K)
+    terms = tuple(torch.as_tensor(water[k], dtype=pts.dtype, device=pts.device)
+                  for k in ("attenuation", "backscatter", "veil"))
+    return pts, torch.linalg.vector_norm(pts - _centre(vi), dim=-1).unsqueeze(-1), terms
+
+
+def _direct_at(lin: torch.Tensor, pts: torch.Tensor, r_i: torch.Tensor, vj: PassView, terms) -> torch.Tensor:
+    """Linear light ``lin`` that frame ``vj`` saw at world points ``pts``, as direct light at the
+    ranges ``r_i``: ``vj``'s veil taken off, the attenuation over the difference put back."""
+    att, back, veil = terms
+    r_j = torch.linalg.vector_norm(pts - _centre(vj), dim=-1).unsqueeze(-1)
+    return (lin - veil * (1 - torch.exp(-back * r_j))) * torch.exp(-att * (r_i - r_j))
 
 
 def gather(i: int, views: Sequence[PassView], groups: list[list[int]], depth_tol: float = DEPTH_TOL,
@@ -139,10 +149,8 @@ def gather(i: int, views: Sequence[PassView], groups: list[list[int]], depth_tol
     passes = torch.zeros(vi.surface.shape, dtype=torch.int64, device=vi.surface.device)
     veil_i = None
     if water is not None:
-        pts = backproject(depth_map(vi), vi.viewmat, vi.K)
-        att, back, veil = _water_terms(water, pts)
-        r_i = torch.linalg.vector_norm(pts - _centre(vi), dim=-1).unsqueeze(-1)
-        veil_i = veil * (1 - torch.exp(-back * r_i))
+        pts, r_i, terms = _water_frame(vi, water)
+        veil_i = terms[2] * (1 - torch.exp(-terms[1] * r_i))
     for g in groups:
         seen = torch.zeros_like(vi.covered)
         for j in g:
@@ -151,10 +159,7 @@ def gather(i: int, views: Sequence[PassView], groups: list[list[int]], depth_tol
             else:
                 sample, ok = warp(vi, views[j], depth_tol)
             lin = _linear(sample)
-            if water is not None:
-                r_j = r_i if j == i else torch.linalg.vector_norm(pts - _centre(views[j]), dim=-1).unsqueeze(-1)
-                lin = (lin - veil * (1 - torch.exp(-back * r_j))) * torch.exp(-att * (r_i - r_j))
-            samples.append(lin)
+            samples.append(lin if water is None else _direct_at(lin, pts, r_i, views[j], terms))
             valid.append(ok)
             seen |= ok
         passes += seen
@@ -278,11 +283,11 @@ def light_statistics(views: Sequence[PassView], overlap: np.ndarray, sources: Op
         if int(ok.sum()) < 100:
             return None
         s = sigma * vi.photo.shape[1] / 320.0
-        if water is None:
-            own, seen = _linear(vi.photo), _linear(other)
-        else:
-            samples, _, _, _ = gather(i, views, [[i], [j]], water=water)
-            own, seen = samples[0].clamp_min(0), samples[1].clamp_min(0)
+        own, seen = _linear(vi.photo), _linear(other)
+        if water is not None:   # both frames' direct light at i's range (as gather compares them)
+            pts, r_i, terms = _water_frame(vi, water)
+            own = _direct_at(own, pts, r_i, vi, terms).clamp_min(0)
+            seen = _direct_at(seen, pts, r_i, views[j], terms).clamp_min(0)
         a = smooth(own.mean(-1).unsqueeze(0), ok.unsqueeze(0), s)[0]
         b = smooth(seen.mean(-1).unsqueeze(0), ok.unsqueeze(0), s)[0]
         r = (torch.log(b + 0.01) - torch.log(a + 0.01))[ok]
