@@ -30,24 +30,26 @@ differentiated through, so the water never moves the geometry. Coefficients are 
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
 from .colour import linear_to_srgb, srgb_to_linear
 
-#: Range below which a pixel's depth is not trusted (scene units relative to ``length``).
+#: Accumulated opacity a pixel's expected depth is divided by at the least (its range, in holes).
 _MIN_ALPHA = 1e-4
 
 
-def _inv_softplus(x: float) -> float:
-    return math.log(math.expm1(max(x, 1e-6)))
-
-
-def _logit(p: float) -> float:
-    p = min(max(p, 1e-4), 1 - 1e-4)
-    return math.log(p / (1 - p))
+def _raw(attenuation, backscatter, veil, length: float) -> torch.Tensor:
+    """(3, 3) float32 raw parameters for coefficients per scene unit (three per row): softplus^-1
+    of each coefficient times ``length`` (at least 1e-6), and the logit of the veil (within
+    1e-4 of 0 and 1)."""
+    rows = []
+    for coef in (attenuation, backscatter):
+        x = (torch.as_tensor(coef, dtype=torch.float64) * length).clamp_min(1e-6)
+        rows.append(x + torch.log(-torch.expm1(-x)))          # softplus^-1, stable
+    v = torch.as_tensor(veil, dtype=torch.float64).clamp(1e-4, 1 - 1e-4)
+    rows.append(torch.log(v / (1 - v)))
+    return torch.stack(rows).float()
 
 
 def ray_lengths(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
@@ -65,9 +67,8 @@ class Medium:
                  backscatter: float = 0.05, device="cpu"):
         #: scene units the coefficients are learned per (the survey's median range)
         self.length = float(length)
-        init = [[_inv_softplus(attenuation * self.length)] * 3, [_inv_softplus(backscatter * self.length)] * 3,
-                [_logit(float(v)) for v in veil]]
-        self.raw = torch.nn.Parameter(torch.tensor(init, dtype=torch.float32, device=device))
+        self.raw = torch.nn.Parameter(_raw([attenuation] * 3, [backscatter] * 3, [float(v) for v in veil],
+                                           self.length).to(device))
 
     def coefficients(self, raw: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(attenuation, backscatter per scene unit, veil colour), each (3,)."""
@@ -108,11 +109,7 @@ class Medium:
         """The medium with given coefficients (:meth:`values`' layout; ``length`` defaults to 1)."""
         m = cls(values.get("length", 1.0), device=device)
         with torch.no_grad():
-            for row, key in ((0, "attenuation"), (1, "backscatter")):
-                x = torch.tensor(values[key], dtype=torch.float64) * m.length
-                m.raw[row] = (x + torch.log(-torch.expm1(-x))).float()     # softplus^-1, stable
-            v = torch.tensor(values["veil"], dtype=torch.float64).clamp(1e-6, 1 - 1e-6)
-            m.raw[2] = torch.log(v / (1 - v)).float()
+            m.raw.copy_(_raw(values["attenuation"], values["backscatter"], values["veil"], m.length))
         return m
 
     @classmethod
