@@ -408,9 +408,7 @@ class RecGS(Estimates, Method):
         with tr.using(snap):
             cap, ref, nll, gt = [], [], [], []
             for i in ids:
-                ro = tr.render_output(i, seen=False)
-                true = ro.rgb.clamp(0, 1)
-                rgb = tr.as_seen(ro, self.data.view(i, 1)[0]).clamp(0, 1)
+                rgb, true = tr.render_pair(i)
                 photo = self.data.view(i, 1)[1]
                 cap.append(psnr(rgb, photo))
                 if self.references is not None and i in self.references:

@@ -96,6 +96,12 @@ class EvaluationMixin:
         seen through the water or (``seen=False``) in true colour."""
         return self.render_output(index, seen).rgb
 
+    def render_pair(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(as seen through the water, true colour) renders of camera ``index``, both clamped to
+        [0, 1], from one render (the same image twice without water)."""
+        out = self.render_output(index, seen=False)
+        return self.as_seen(out, self.data.view(index, 1)[0]).clamp(0, 1), out.rgb.clamp(0, 1)
+
     def heldout_ids(self, ids: Optional[list[int]] = None) -> list[int]:
         """The held-out views a score is taken on (``ids``, default all, cut to ``eval_views``)."""
         ids = self.data.test_ids if ids is None else ids
@@ -123,9 +129,7 @@ class EvaluationMixin:
             return {}
         ps, ss, pg, sg, pc = [], [], [], [], []
         for i in ids:
-            out = self.render_output(i, seen=False)
-            true = out.rgb.clamp(0, 1)   # the seabed's true colour: what a ground truth holds
-            rgb = true if self.medium is None else self.as_seen(out, self.data.view(i, 1)[0]).clamp(0, 1)
+            rgb, true = self.render_pair(i)   # true colour: what a ground truth holds
             photo = self.data.view(i, 1)[1]
             ref = self.objective.reference(i, photo, rgb)
             ps.append(psnr(rgb, ref))
