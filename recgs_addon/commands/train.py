@@ -234,12 +234,14 @@ def run_train(args) -> int:
         trainer.data.load_all(trainer.level(), on_image=_reading_progress(time.perf_counter()))
         plan = _plan(args, method, trainer)
         trainer.start_clock(t_command)
+        from ..core.train.water import DECIDE_VIEWS
+
         # what _finish renders: held-out views (outputs, final scores), every training view
         # (views per Gaussian), every view again at most 400 px (coverage), and with water every
         # training view's range (its true-colour photo) and a few to decide on the water
         n_train, n_test = len(trainer.data.train_ids), len(trainer.data.test_ids)
         trainer.finishing_renders = lambda: (2 * n_test + 2 * n_train + n_test + method.finishing_renders()
-                                             + (n_train + 8 if trainer.medium is not None else 0))
+                                             + (n_train + DECIDE_VIEWS if trainer.medium is not None else 0))
     except RecGSError as exc:
         return fail(str(exc))
 

@@ -74,7 +74,7 @@ def true_colour_photo(trainer, index: int, image: torch.Tensor) -> torch.Tensor:
     at each pixel (:func:`~..model.medium.out_of_water`, the direct signal's gain capped)."""
     out = trainer.render_output(index, seen=False)
     cam = trainer.data.view(index, 1)[0]
-    rng = (out.depth / out.alpha.clamp_min(1e-4) * trainer.ray_len(cam)).cpu().numpy()
+    rng = Medium.range_of(out.alpha, out.depth, trainer.ray_len(cam)).cpu().numpy()
     lin = srgb_to_linear(image.clamp(0, 1)).cpu().numpy()
     true = out_of_water(lin, rng, trainer.medium.values())
     return linear_to_srgb(torch.from_numpy(true.astype(np.float32)))

@@ -7,10 +7,15 @@ from the seabed's colour:
 1. **Before training**, from the sparse points seen in the training views: if a point's range
    hardly changes from view to view (the median over points of its farthest over its nearest
    view, below :data:`MIN_RANGE_SPREAD`), water and colour are one per-channel scale and offset
-   the photos cannot separate, and the run is plain.
-2. **At the end**, if the fitted water changes the training views by less than
+   the photos cannot separate, and the run is plain. Otherwise the water and each point's true
+   colour are fitted to the points' colours in the photos (:func:`fit_from_points`); unless the
+   water explains :data:`MIN_ERROR_GAIN` of their colour change from view to view and changes
+   them by :data:`MIN_EFFECT` 8-bit levels, the run is plain. The fit starts the water and the
+   Gaussians' colours; where the water explains :data:`TRUST_ATTENUATION` or more, its
+   attenuation is kept through training.
+2. **At the end**, if the trained water changes the training views by less than
    :data:`MIN_EFFECT` (mean absolute difference, 8-bit levels) between the seabed seen through
-   it and the seabed alone, the water is not measurable and is left out of the outputs.
+   it and the seabed alone, it is left out of the outputs.
 
 :class:`MediumMixin` is a part of :class:`~.trainer.Trainer` (its ``cfg``, ``data``, ``params``
 and ``step``); the report reads :meth:`MediumMixin.medium_summary`.
@@ -31,6 +36,8 @@ from ..model.medium import Medium, out_of_water, ray_lengths
 MIN_RANGE_SPREAD = 1.05
 #: Mean change (8-bit levels) the fitted water must make to the training views to be kept.
 MIN_EFFECT = 2.0
+#: Training views the end-of-run decision renders, at most.
+DECIDE_VIEWS = 8
 #: Adam's learning rate for the medium's raw parameters (softplus / logit space) in training.
 LR_MEDIUM = 0.01
 #: Adam steps of the fit to the sparse points before training.
@@ -252,10 +259,10 @@ class MediumMixin:
     @torch.no_grad()
     def decide_medium(self) -> None:
         """``auto``: leave the water out when it changes the training views by less than
-        :data:`MIN_EFFECT` 8-bit levels (measured on up to 8 of them)."""
+        :data:`MIN_EFFECT` 8-bit levels (measured on up to :data:`DECIDE_VIEWS` of them)."""
         if self.medium is None:
             return
-        ids = self.data.train_ids[:: max(1, len(self.data.train_ids) // 8)][:8]
+        ids = self.data.train_ids[:: max(1, len(self.data.train_ids) // DECIDE_VIEWS)][:DECIDE_VIEWS]
         diffs = []
         for i in ids:
             out = self.render_output(i, seen=False)
