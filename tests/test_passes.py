@@ -11,7 +11,7 @@ import torch
 from recgs_addon.core.caustics import geometry as G
 from recgs_addon.core.caustics import passes as P
 from recgs_addon.core.caustics.estimators import LIGHT_FLOOR
-from recgs_addon.core.caustics.lightfield import linear_to_srgb, srgb_to_linear
+from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
 from recgs_addon.core.train.losses import psnr
 
 W, H, F = 96, 72, 120.0   # image size and focal length (pixels): 2 cm a pixel on the seabed
