@@ -52,7 +52,10 @@ class _See(torch.autograd.Function):
         out = np.empty_like(s)
         parts = np.empty((5,) + s.shape, np.float32)
         cuts = _cuts(s.shape[0])
-        run_ranges(lambda lo, hi: impl.forward(lo, hi, s, r, *coef, out, parts), cuts)
+        if "tables" not in _STATE:
+            _STATE["tables"] = impl.tables()
+        tabs = _STATE["tables"]
+        run_ranges(lambda lo, hi: impl.forward(lo, hi, s, r, *coef, *tabs, out, parts), cuts)
         ctx.saved = (parts, cuts)
         return torch.from_numpy(out)
 
