@@ -106,16 +106,15 @@ def step_cost(out: Path, steps: int = 60, blocks: int = 4, grown=(600, 2500)) ->
 
     scene = survey_dir(out, "dive-water")
     tr = make_trainer(scene, preset("default", medium="on", eval_every=10**9))
-    medium = tr.medium
-    tr.medium = None
+    water = (tr.medium, tr.medium_optimizer)
     for until in grown:
-        tr.medium = None
+        tr.medium, tr.medium_optimizer = None, None
         while tr.step < until:
             tr.train_step()
         times = {"water": [], "plain": []}
         for b in range(blocks):
             for name in ("plain", "water") if b % 2 == 0 else ("water", "plain"):
-                tr.medium = medium if name == "water" else None
+                tr.medium, tr.medium_optimizer = water if name == "water" else (None, None)
                 t = time.perf_counter()
                 for _ in range(steps):
                     tr.train_step()
