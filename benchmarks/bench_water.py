@@ -1,6 +1,6 @@
 """Water benchmark: true colour under attenuation and backscatter, side by side.
 
-    .venv/bin/python benchmarks/bench_water.py --out out/bench [--minutes 5] [--only runs|decisions|step]
+    .venv/bin/python benchmarks/bench_water.py --out out/bench [--minutes 5] [--only runs|decisions|step|identify]
 
 * **runs**: on ``dive-water`` (green coastal water, ranges about 1.5-5 m, no caustics) plain 3DGS,
   3DGS with the water model, and the oracle (plain 3DGS on the true-colour images); on
@@ -12,6 +12,13 @@
 * **decisions**: what ``auto`` decides before training on every survey at hand, and why.
 * **step**: seconds a training step takes with and without the water (the same model, blocks
   of steps alternated in one process).
+* **identify**: how well the photos of ``dive-water`` determine each coefficient. (1) Given the
+  true colour and the true range of every pixel (what no method has), least squares per channel
+  in linear light on 3,000 pixels a view; (2) from the sparse points as training starts (each
+  point's true colour unknown), the points' fit with one channel's backscatter held at half,
+  once and twice the generator's: its error shows how flat the fit is along the veil-rate
+  trade-off; (3) the darkest pixels per range (Sea-thru's backscatter estimate) against the
+  generator's veil at that range.
 
 Surveys come from benchmarks/bench_caustics.py (generated once into OUT/surveys).
 """
@@ -126,16 +133,94 @@ def step_cost(out: Path, steps: int = 60, blocks: int = 4, grown=(600, 2500)) ->
                           "ratio": round(w / p, 3)}), flush=True)
 
 
+def identify(out: Path, survey: str = "dive-water", per_view: int = 3000, steps: int = 6000) -> None:
+    """See the module: ``--only identify``."""
+    from unittest import mock
+
+    import numpy as np
+    import torch
+
+    from recgs_addon.core.io.images import read_image
+    from recgs_addon.core.model.colour import srgb_to_linear
+    from recgs_addon.core.model.medium import Medium, ray_lengths
+    from recgs_addon.core.train import water
+    from recgs_addon.core.train.config import preset
+    from recgs_addon.core.train.trainer import make_trainer
+
+    scene = survey_dir(out, survey)
+    meta = json.loads((scene / "survey.json").read_text())
+    truth, k = meta["water"], meta["intrinsics"]
+    gen = [np.array(truth[n]) for n in ("attenuation_per_m", "backscatter_per_m", "veiling_light")]
+    rl = ray_lengths(k["width"], k["height"], k["fx"], k["fy"], k["cx"], k["cy"]).numpy().reshape(-1)
+    rs = np.random.default_rng(0)
+    seen, true, rng = [], [], []
+    for path in sorted((scene / "images").glob("*.png")):
+        pick = rs.choice(rl.size, per_view, replace=False)
+        for dst, img in ((seen, read_image(path)), (true, read_image(scene / "clean" / path.name))):
+            dst.append(srgb_to_linear(torch.from_numpy(img.reshape(-1, 3)[pick]).double()))
+        rng.append(torch.from_numpy((np.load(scene / "depth" / f"{path.stem}.npy").reshape(-1) * rl)[pick]).double())
+    seen, true, rng = torch.cat(seen), torch.cat(true), torch.cat(rng)
+    fitted = []
+    for c in range(3):
+        p = torch.log(torch.tensor([0.3, 0.3, 0.05], dtype=torch.float64)).requires_grad_()
+        opt = torch.optim.LBFGS([p], max_iter=500, tolerance_change=1e-16, line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            att, back, veil = p.exp()
+            loss = 1e6 * ((true[:, c] * torch.exp(-att * rng) + veil * (1 - torch.exp(-back * rng)) - seen[:, c]) ** 2).mean()
+            loss.backward()
+            return loss
+        for _ in range(3):
+            opt.step(closure)
+        fitted.append(p.detach().exp().numpy())
+    fitted = np.array(fitted).T
+    print(json.dumps({"part": "given the true colour and range", "pixels": int(rng.numel()),
+                      "relative_error": {n: np.round(np.abs(fitted[i] / gen[i] - 1), 4).tolist()
+                                         for i, n in enumerate(("attenuation", "backscatter", "veil"))}}), flush=True)
+
+    tr = make_trainer(scene, preset("default", medium="off", eval_every=10**9))
+    obs = water._observations(tr.data)
+    water._sample_colours(tr.data, obs)
+    length = water.range_profile(obs)["median_range"]
+    for c in range(3):
+        for factor in (0.5, 1.0, 2.0):
+            held = factor * gen[1][c]
+
+            class Held(Medium):
+                def coefficients(self, raw=None):
+                    att, back, veil = super().coefficients(raw)
+                    return att, torch.cat([back[:c], back.new_tensor([held]), back[c + 1:]]), veil
+            with mock.patch.object(water, "Medium", Held):
+                fit = water.fit_from_points(obs, length, steps=steps)
+            v = fit["medium"].values()
+            print(json.dumps({"part": "from the sparse points", "channel": c, "backscatter_held": round(held, 3),
+                              "error_levels": round(fit["error_water"], 4), "veil": round(v["veil"][c], 4),
+                              "attenuation": round(v["attenuation"][c], 4)}), flush=True)
+
+    r = rng.numpy()
+    edges = np.percentile(r, np.linspace(2, 98, 9))
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (r >= lo) & (r < hi)
+        mid = float(r[sel].mean())
+        veil_at = gen[2] * (1 - np.exp(-gen[1] * mid))
+        dark = np.percentile(seen.numpy()[sel], 0.5, axis=0)
+        print(json.dumps({"part": "darkest 0.5 % of pixels", "range": round(mid, 2),
+                          "over_generator_veil": np.round(dark / veil_at, 2).tolist()}), flush=True)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench")
     p.add_argument("--minutes", type=float, default=5.0)
-    p.add_argument("--only", choices=("runs", "decisions", "step"), default=None)
+    p.add_argument("--only", choices=("runs", "decisions", "step", "identify"), default=None)
     a = p.parse_args()
     if a.only in (None, "decisions"):
         decisions(a.out)
     if a.only in (None, "step"):
         step_cost(a.out)
+    if a.only in (None, "identify"):
+        identify(a.out)
     if a.only in (None, "runs"):
         runs(a.out, a.minutes)
     return 0
