@@ -375,6 +375,24 @@ def test_bad_caustic_settings_refused(caustic_scene, tmp_path):
         make(bare, gt_images=None, mode="oracle")
 
 
+def test_a_method_checks_each_config_once_before_reading_the_survey(caustic_scene, monkeypatch):
+    """make_method checks the trainer's and the method's settings once each, before a file is
+    read: a bad setting is refused even where the survey folder does not exist."""
+    from recgs_addon.core.caustics.config import CausticConfig
+    from recgs_addon.core.train.config import TrainConfig
+
+    calls = []
+    for cls in (TrainConfig, CausticConfig):
+        real = cls.validate
+        monkeypatch.setattr(cls, "validate", lambda self, real=real, name=cls.__name__: (calls.append(name), real(self)))
+    make(caustic_scene, gt_images=None)
+    assert sorted(calls) == ["CausticConfig", "TrainConfig"]
+    with pytest.raises(RecGSError, match="downscale"):
+        make(caustic_scene / "missing", gt_images=None, downscale=0)
+    with pytest.raises(RecGSError, match="odd"):
+        make(caustic_scene / "missing", gt_images=None, caustic_k=4)
+
+
 def test_recgs_job_writes_caustic_outputs_and_report(caustic_scene, tmp_path):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "recgs_addon", "train", str(caustic_scene), "--out", str(out), "--mode", "recgs",

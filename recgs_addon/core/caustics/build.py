@@ -17,9 +17,9 @@ from .recgs import RecGS
 def make_method(scene_dir: str | Path, cfg: TrainConfig, ccfg: CausticConfig, images: Optional[str | Path] = None,
                 gaussians: Optional[GaussianSet] = None, gt_images: Optional[str | Path] = None) -> Method:
     """Load a survey and build the method of ``ccfg.mode``; all input checks happen here,
-    before any work. ``gt_images``: ground-truth images with the same names, for scoring
-    (required by ``oracle``, which trains on them)."""
-    cfg.validate()
+    before any work (the method's settings here, the trainer's in :func:`make_trainer`).
+    ``gt_images``: ground-truth images with the same names, for scoring (required by
+    ``oracle``, which trains on them)."""
     ccfg.validate()
     if ccfg.mode == "oracle":
         if gt_images is None:

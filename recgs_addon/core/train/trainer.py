@@ -61,7 +61,8 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
     trainer in segments with ``train_until`` and sets ``label`` to name its phase."""
 
     def __init__(self, data: TrainData, cfg: TrainConfig, gaussians: Optional[GaussianSet] = None):
-        cfg.validate()
+        """``cfg`` as checked by :meth:`TrainConfig.validate` (:func:`make_trainer` checks it
+        before reading the survey)."""
         self.data, self.cfg = data, cfg
         self.objective: Objective = Objective()
         self.objective_optimizer: Optional[torch.optim.Adam] = None
