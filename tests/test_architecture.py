@@ -231,14 +231,14 @@ def test_modes_estimators_and_density_controls_are_listed_once():
     there. A list, tuple or set literal anywhere else that names a whole one of them fails (a
     dict that maps each to its own code is dispatch, not a copy)."""
     from recgs_addon.core.caustics.config import CAUSTIC_MODES, ESTIMATORS, MODES
-    from recgs_addon.core.train.config import DENSITY_DEFAULTS
+    from recgs_addon.core.train.strategies import STRATEGIES
 
     caustic_config = PKG / "core" / "caustics" / "config.py"
     families = {
         "modes": (set(MODES), caustic_config),
         "caustic modes": (set(CAUSTIC_MODES), caustic_config),
         "estimators": (set(ESTIMATORS) - {"auto"}, caustic_config),
-        "density controls": (set(DENSITY_DEFAULTS), PKG / "core" / "train" / "config.py"),
+        "density controls": (set(STRATEGIES), PKG / "core" / "train" / "strategies.py"),
     }
     copies = []
     for path in PKG.rglob("*.py"):

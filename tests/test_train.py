@@ -205,18 +205,44 @@ def test_regulariser_gradient_is_autograds(small_scene):
 
 def test_density_default_is_declared_once_and_every_entry_takes_it():
     """The trainer's config, the default preset and the command line (every mode) train with
-    DEFAULT_STRATEGY and that strategy's settings."""
+    DEFAULT_STRATEGY and that strategy's own settings."""
     from recgs_addon.cli import build_parser
-    from recgs_addon.core.train.config import DEFAULT_STRATEGY, DENSITY_DEFAULTS, TrainConfig
+    from recgs_addon.core.train.config import TrainConfig
+    from recgs_addon.core.train.strategies import DEFAULT_STRATEGY, MCMC, STRATEGIES
 
     assert TrainConfig().strategy == preset("default").strategy == DEFAULT_STRATEGY == "adc"
-    assert preset("default").pixels_per_gaussian == DENSITY_DEFAULTS[DEFAULT_STRATEGY]["pixels_per_gaussian"]
+    assert preset("default").density == STRATEGIES[DEFAULT_STRATEGY]()
     parser = build_parser()
     for mode in ("3dgs", "recgs", "filter2d", "joint", "oracle"):
         args = parser.parse_args(["train", "scene", "--out", "o", "--mode", mode])
         assert preset("default", strategy=args.density).strategy == DEFAULT_STRATEGY
     args = parser.parse_args(["train", "scene", "--out", "o", "--density", "mcmc"])
-    assert preset("default", strategy=args.density).pixels_per_gaussian == DENSITY_DEFAULTS["mcmc"]["pixels_per_gaussian"]
+    assert preset("default", strategy=args.density).density == MCMC()
+
+
+def test_strategies_own_their_settings_and_checkpoints_keep_them():
+    """A strategy's settings go to it by name (and only to it); a config saved in a checkpoint
+    comes back with its strategy, from the nested form or the flat one of older checkpoints."""
+    from dataclasses import asdict
+
+    from recgs_addon.core.train.config import TrainConfig
+    from recgs_addon.core.train.strategies import CloneSplit, MCMC
+
+    cfg = preset("default", strategy="mcmc", relocate_opacity=0.2, draw="gradient")
+    assert cfg.density == MCMC(relocate_opacity=0.2, draw="gradient")
+    assert cfg.density.uses_gradient_stats() and cfg.density.regularisers() == (0.01, 0.01)
+    assert TrainConfig.from_dict(asdict(cfg)) == cfg
+    with pytest.raises(RecGSError, match="relocate_opacity: not a setting of density control 'adc'"):
+        preset("default", relocate_opacity=0.2)
+    with pytest.raises(RecGSError, match="unknown density strategy"):
+        preset("default", strategy="grow")
+    flat = {k: v for k, v in asdict(preset("default")).items() if k != "density"}
+    old_mcmc = {**flat, "strategy": "mcmc", "opacity_reg": 0.0, "relocate_opacity": 0.005, "mcmc_draw": "gradient",
+                "pixels_per_gaussian": 36.0, "densify_grad_threshold": 2e-4}
+    assert TrainConfig.from_dict(old_mcmc).density == MCMC(opacity_reg=0.0, relocate_opacity=0.005, draw="gradient")
+    old_adc = {**flat, "strategy": "adc", "densify_grad_threshold": 3e-4, "pixels_per_gaussian": 8.0,
+               "surface_pixels_per_gaussian": 3.5, "relocate_opacity": 0.005}
+    assert TrainConfig.from_dict(old_adc).density == CloneSplit(grad_threshold=3e-4)
 
 
 def test_mcmc_strategy_trains_within_its_budget(small_scene):
@@ -425,7 +451,7 @@ def test_job_allocator_keeps_freed_memory():
 @pytest.mark.parametrize("kwargs,msg", [
     ({"budget": 0}, "budget must be at least 1"),
     ({"downscale": 8}, "below 8 px"),
-    ({"relocate_opacity": 1.0}, "relocate_opacity must be between 0 and 1"),
+    ({"strategy": "mcmc", "relocate_opacity": 1.0}, "relocate_opacity must be between 0 and 1"),
 ])
 def test_bad_settings_refused_before_work(small_scene, kwargs, msg):
     with pytest.raises(RecGSError, match=msg):

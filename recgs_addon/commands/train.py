@@ -26,7 +26,8 @@ from pathlib import Path
 
 from ..core.caustics.config import CAUSTIC_MODES, ESTIMATORS, MODES, CausticConfig
 from ..core.errors import RecGSError
-from ..core.train.config import DEFAULT_STRATEGY, DENSITY_DEFAULTS, MEDIUM_MODES
+from ..core.train.config import MEDIUM_MODES
+from ..core.train.strategies import DEFAULT_STRATEGY, STRATEGIES
 from .events import StopSignals, _finite_tree, _json_default, emit, fail, finite
 
 
@@ -50,7 +51,7 @@ def add_train_arguments(p) -> None:
                    help="maximum number of Gaussians, or 'auto': stop adding Gaussians when held-out quality "
                         "stops improving, at most one per 3.5 pixels of seabed (the training pixels over the views "
                         "that see a point). A fixed number gives a smaller file and a faster viewer")
-    p.add_argument("--density", choices=sorted(DENSITY_DEFAULTS), default=None,
+    p.add_argument("--density", choices=sorted(STRATEGIES), default=None,
                    help=f"density control (default {DEFAULT_STRATEGY}): adc (INRIA's clone/split by screen gradient) "
                         "or mcmc (relocate faded Gaussians under a fixed budget, 3DGS-MCMC; 2-3.5 dB lower held-out "
                         "than adc in 5-minute runs on clean surveys)")

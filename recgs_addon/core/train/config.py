@@ -13,32 +13,14 @@ method's own settings live beside it, in core/caustics/config.py); :func:`preset
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Optional
 
 from ..errors import RecGSError
+from .strategies import DEFAULT_STRATEGY, STRATEGIES, Strategy, default_strategy, make_strategy, strategy_fields, \
+    strategy_from_dict
 
 
-#: The default preset's settings that go with each density control (benchmarks/RESULTS.md:
-#: training-quality-vs-size, training-relocation-five-minutes): 3DGS-MCMC's regularisers,
-#: relocation below opacity 0.1 (the paper's 0.005 left the budget on faint Gaussians: +0.27
-#: and +0.51 dB at 59,733 Gaussians after 3000 steps, two seeds, and 8 % less time a step;
-#: nerfstudio culls below 0.1 too) and one Gaussian per 6x6 block of training pixels, or
-#: INRIA's clone/split with one per 8 pixels and one per 3.5 pixels of seabed (the training
-#: pixels over the median views of a sparse point): on dive surveys (12 views a point) the
-#: second cuts the model to a quarter or a third and scores as high or higher in a time limit
-#: (benchmarks/RESULTS.md#budget-by-seabed).
-DENSITY_DEFAULTS = {
-    "mcmc": dict(strategy="mcmc", opacity_reg=0.01, scale_reg=0.01, pixels_per_gaussian=36.0, relocate_opacity=0.1),
-    "adc": dict(strategy="adc", opacity_reg=0.0, scale_reg=0.0, pixels_per_gaussian=8.0,
-                surface_pixels_per_gaussian=3.5),
-}
-#: The density control of every mode unless asked otherwise: INRIA's clone/split. The caustic
-#: methods need its sharper model (on the sample, 4 minutes, recgs: caustic-free images 23.61 dB
-#: against MCMC's 21.88), and plain 3DGS scores higher with it too: 5 minutes on clean photos,
-#: +2.0 dB held-out on the 24-photo sample and +3.0 and +3.5 dB on a 144-frame dive survey
-#: (benchmarks/RESULTS.md#training-density-default).
-DEFAULT_STRATEGY = "adc"
 #: The water model's settings (core/train/water.py): auto fits it where the survey sees each
 #: point from several ranges and keeps it where it changes the photos measurably.
 MEDIUM_MODES = ("auto", "on", "off")
@@ -72,14 +54,10 @@ class TrainConfig:
     densify_from: int = 500
     densify_until: int = 15_000
     densify_every: int = 100
-    densify_grad_threshold: float = 2e-4
     opacity_reset_every: int = 3000
-    strategy: str = DEFAULT_STRATEGY     # "adc": clone/split by screen gradient (INRIA) | "mcmc": 3DGS-MCMC
-    opacity_reg: float = 0.0             # loss + this * mean opacity (3DGS-MCMC: 0.01)
-    scale_reg: float = 0.0               # loss + this * mean scale / scene extent (3DGS-MCMC: 0.01, unnormalised)
-    mcmc_draw: str = "opacity"           # mcmc: draw sources by "opacity" (3DGS-MCMC) or "gradient" (opacity x screen gradient)
-    noise_lr: float = 0.0                # mcmc: exploration noise on nearly transparent Gaussians (3DGS-MCMC: 5e5)
-    relocate_opacity: float = 0.005      # mcmc: Gaussians below this opacity are relocated (3DGS-MCMC: 0.005)
+    #: which Gaussians are added, moved and removed, with its own settings (strategies.py):
+    #: clone/split (INRIA, the default) or 3DGS-MCMC
+    density: Strategy = field(default_factory=default_strategy)
     # coarse to fine: ((until_step, extra downscale factor), ...); the last level is 1
     pyramid: tuple = ()
     # evaluation and stopping
@@ -89,9 +67,6 @@ class TrainConfig:
     plateau_min_gain: float = 0.02
     growth_patience: int = 3             # budget auto: evals without plateau_min_gain*5 dB -> stop growth
     growth_rate: float = 0.0             # max fractional growth per densification (0 = unlimited)
-    pixels_per_gaussian: float = 0.0     # budget auto: at most (training pixels / this) Gaussians
-    surface_pixels_per_gaussian: float = 0.0  # ... and at most (training pixels / median views of a
-                                              # sparse point / this): trainer.auto_budget
     sh_probation: int = 1000             # steps given to a new SH degree before it is judged
     sh_min_gain: float = 0.05            # dB a new SH degree must add on held-out views
     keep_best: bool = False              # end with the model that scored best on the held-out photos as captured
@@ -101,13 +76,20 @@ class TrainConfig:
     medium: str = "auto"                 # water (attenuation, backscatter) fitted with the Gaussians:
                                          # "auto" (where the survey can tell it from colour), "on", "off"
 
+    @property
+    def strategy(self) -> str:
+        """The density control's name (``adc`` or ``mcmc``)."""
+        return self.density.name
+
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
         """The config saved in a checkpoint (``asdict`` form). Keys that are not trainer
         settings (a method's own, which older checkpoints kept in the same dict) are ignored."""
-        d = {k: v for k, v in d.items() if k in cls.__dataclass_fields__}
+        dens = strategy_from_dict(d["density"] if isinstance(d.get("density"), dict) else d)
+        d = {k: v for k, v in d.items() if k in cls.__dataclass_fields__ and k != "density"}
         d.setdefault("max_side", 0)   # checkpoints from before the cap trained at the photos' size
-        return cls(**{**d, "pyramid": tuple(tuple(x) for x in d["pyramid"]), "background": tuple(d["background"])})
+        return cls(**{**d, "density": dens, "pyramid": tuple(tuple(x) for x in d["pyramid"]),
+                      "background": tuple(d["background"])})
 
     def validate(self) -> None:
         """Refuse settings no run can use (called before any data is read)."""
@@ -122,10 +104,7 @@ class TrainConfig:
             raise RecGSError(f"iterations must be at least 1, got {self.iterations}")
         if self.max_minutes is not None and not self.max_minutes > 0:   # NaN fails this too
             raise RecGSError(f"the time limit must be a number of minutes above 0, got {self.max_minutes}")
-        if not 0 < self.relocate_opacity < 1:
-            raise RecGSError(f"relocate_opacity must be between 0 and 1, got {self.relocate_opacity}")
-        if self.strategy not in DENSITY_DEFAULTS:
-            raise RecGSError(f"unknown density strategy {self.strategy!r} (choose {' or '.join(DENSITY_DEFAULTS)})")
+        self.density.validate()
         if self.medium not in MEDIUM_MODES:
             raise RecGSError(f"unknown medium setting {self.medium!r} (choose {', '.join(MEDIUM_MODES)})")
         if self.holdout_every < 0:
@@ -135,7 +114,16 @@ class TrainConfig:
 
 
 def preset(name: str, **overrides) -> TrainConfig:
-    """``vanilla``: INRIA's schedule. ``default``: the lean schedule described in docs/dev/training.md."""
+    """``vanilla``: INRIA's schedule. ``default``: the lean schedule described in docs/dev/training.md.
+    ``overrides`` may name the density control (``strategy``) and its settings by their names."""
+    kind = overrides.pop("strategy", None) or DEFAULT_STRATEGY
+    make_strategy(kind)   # an unknown name is refused here
+    own = strategy_fields(kind)
+    dens = make_strategy(kind, **{k: overrides.pop(k) for k in list(overrides) if k in own and overrides[k] is not None})
+    others = {f.name for f in fields(TrainConfig)}
+    stray = [k for k in overrides if k not in others and any(k in strategy_fields(n) for n in STRATEGIES)]
+    if stray:
+        raise RecGSError(f"{', '.join(stray)}: not a setting of density control {kind!r}")
     if name == "vanilla":
         cfg = TrainConfig(preset="vanilla", iterations=30_000, sh_policy="schedule",
                           plateau_patience=0, budget=10**9, eval_every=1000)
@@ -143,8 +131,7 @@ def preset(name: str, **overrides) -> TrainConfig:
         cfg = TrainConfig(preset="default", iterations=30_000, densify_from=200, densify_until=4000,
                           densify_every=100, opacity_reset_every=0, pyramid=((300, 2),),
                           eval_every=250, plateau_patience=4, growth_patience=2, sh_policy="probation",
-                          growth_rate=0.25, keep_best=True,
-                          **DENSITY_DEFAULTS.get(overrides.get("strategy") or DEFAULT_STRATEGY, {}))
+                          growth_rate=0.25, keep_best=True)
     else:
         raise RecGSError(f"unknown preset {name!r} (choose default or vanilla)")
-    return replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+    return replace(cfg, density=dens, **{k: v for k, v in overrides.items() if v is not None})

@@ -252,14 +252,14 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         self.bad_steps = 0
         loss.backward()
         self.row_grads.write()   # .grad of the parameters: the visible rows' gradients, zero elsewhere
-        if c.opacity_reg or c.scale_reg:
+        if any(c.density.regularisers()):
             value += self._regulariser_grad(out.radii > 0)
         if self.densifying() and self._uses_gradient_stats() and out.means2d.grad is not None:
             self.stats.add(out.means2d.grad, out.radii, cam.width, cam.height)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        if c.noise_lr and self.densifying():
-            density.perturb_means(self.params, self._means_lr(), c.noise_lr, self.gen)
+        if self.densifying():
+            c.density.after_step(self)
         if self.objective_optimizer is not None:
             self.objective_optimizer.step()
             self.objective_optimizer.zero_grad(set_to_none=True)
@@ -283,13 +283,13 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         Their gradient is added to ``.grad`` in closed form after the render's backward, the
         same sum under row-sparse and plain gradients (tests/test_train.py). Returns the terms'
         value (for the reported loss)."""
-        c = self.cfg
+        opacity_reg, scale_reg = self.cfg.density.regularisers()
         n = self.params["means"].shape[0]
         ids = torch.nonzero(in_view).squeeze(1)
         value = 0.0
         with torch.no_grad():
-            for name, weight in (("logit_opacities", c.opacity_reg / n),
-                                 ("log_scales", c.scale_reg / (3 * n * self.extent))):
+            for name, weight in (("logit_opacities", opacity_reg / n),
+                                 ("log_scales", scale_reg / (3 * n * self.extent))):
                 if not weight:
                     continue
                 p = self.params[name]
@@ -448,12 +448,13 @@ def auto_budget(data: TrainData, cfg: TrainConfig) -> Optional[int]:
     seabed). The smaller of the two."""
     caps = []
     pixels = data.training_pixels()
-    if cfg.pixels_per_gaussian > 0:
-        caps.append(pixels / cfg.pixels_per_gaussian)
-    if cfg.surface_pixels_per_gaussian > 0:
+    rule = cfg.density
+    if rule.pixels_per_gaussian > 0:
+        caps.append(pixels / rule.pixels_per_gaussian)
+    if rule.surface_pixels_per_gaussian > 0:
         views = sparse_coverage(data).median_views
         if views >= 1:
-            caps.append(pixels / views / cfg.surface_pixels_per_gaussian)
+            caps.append(pixels / views / rule.surface_pixels_per_gaussian)
     return int(min(caps)) if caps else None
 
 
