@@ -24,6 +24,7 @@ LAYERS = [
     ("core.render",),
     ("core.train",),
     ("core.caustics",),
+    ("core.options",),
     ("core.outputs",),
     ("commands", "commands.events", "commands.train", "commands.render", "commands.capture", "engine_install"),
     ("blender",),
@@ -251,3 +252,16 @@ def test_modes_estimators_and_density_controls_are_listed_once():
                 if names <= words and path != home:
                     copies.append(f"{path.relative_to(ROOT)}:{node.lineno}: the {family} {sorted(names)}")
     assert not copies, "written outside the core's config:\n" + "\n".join(copies)
+
+
+def test_what_blenders_process_imports_needs_no_torch():
+    """Blender's own process (the sidebar, batch mode) reads the options and the trainer's
+    settings but has no torch: importing them must not import it (nor numba)."""
+    modules = ["recgs_addon.batch", "recgs_addon.commands.train", "recgs_addon.core.options.train",
+               "recgs_addon.core.train.config"]
+    code = ("import sys\n" + "".join(f"import {m}\n" for m in modules)
+            + "try:\n    import bpy, recgs_addon.blender\nexcept ImportError:\n    pass\n"
+            + "print(sorted(m for m in ('torch', 'numba') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], cwd=PKG.parent, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip().splitlines()[-1] == "[]", r.stdout

@@ -12,15 +12,15 @@ budget may grow (``pixels_per_gaussian``, ``surface_pixels_per_gaussian``: train
 The operations on the parameters and optimiser state are in :mod:`.density`; the trainer calls
 :meth:`Strategy.densify` on its densification steps and :meth:`Strategy.after_step` after
 every optimiser step.
+
+Nothing here imports torch until a strategy runs: the settings are read in Blender's own
+process (the sidebar, batch mode), which has no torch.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
-import torch
-
 from ..errors import RecGSError
-from . import density
 
 
 @dataclass
@@ -67,6 +67,10 @@ class CloneSplit(Strategy):
     def densify(self, tr) -> dict:
         """Clone small and split large Gaussians with high screen gradient, within the budget;
         prune transparent, huge and never-visible ones."""
+        import torch
+
+        from . import density
+
         p = tr.params
         n0 = p["means"].shape[0]
         grads = tr.stats.mean().to(tr.device)
@@ -139,6 +143,8 @@ class MCMC(Strategy):
     def densify(self, tr) -> dict:
         """Move dead Gaussians onto live ones, then add copies of live ones (drawn by opacity)
         up to the budget, at most ``growth_rate`` of the model."""
+        from . import density
+
         p = tr.params
         score = tr.stats.mean().to(tr.device) if self.draw == "gradient" else None
         moved = density.relocate(p, tr.optimizer, tr.gen, dead_opacity=self.relocate_opacity, score=score)
@@ -149,6 +155,8 @@ class MCMC(Strategy):
 
     def after_step(self, tr) -> None:
         if self.noise_lr:
+            from . import density
+
             density.perturb_means(tr.params, tr._means_lr(), self.noise_lr, tr.gen)
 
 
