@@ -9,14 +9,31 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from ..core.caustics.config import CAUSTIC_MODES, MODE_INFO
+from ..core.caustics.config import CAUSTIC_MODES
 from ..core.capture.frame_choice import DEFAULT_FRAMES, MIN_FRAMES
 from ..core.capture.video import DEFAULT_MAX_SIDE
+from ..core.options.train import TRAIN_OPTIONS
 
 #: Folder settings may be relative to the .blend ("//..."); Blender 4.5+ wants that declared.
 _PATH = {"options": {"PATH_SUPPORTS_BLEND_RELATIVE"}} if bpy.app.version >= (4, 5, 0) else {}
 
-MODE_ITEMS = [(mode, label, description) for mode, (label, description) in MODE_INFO.items()]
+
+def _setting(dest: str, **extra):
+    """The bpy property of ``train`` option ``dest``, from its declaration (core/options/train.py):
+    label, description (the option's help), default, choices and range."""
+    opt = TRAIN_OPTIONS[dest]
+    st = opt.setting
+    kw = {"name": st.label, "description": opt.help, "default": opt.setting_default(), **extra}
+    for key, value in (("min", st.minimum), ("max", st.maximum), ("soft_max", st.soft_max), ("step", st.step)):
+        if value is not None:
+            kw[key] = value
+    if opt.choices and isinstance(opt.choices[0], tuple):   # labelled choices: a menu
+        kw["items"] = [tuple(c) for c in opt.choices]
+        for key in ("min", "max", "soft_max", "step"):
+            kw.pop(key, None)
+        return EnumProperty(**kw)
+    kind = st.kind or {bool: "bool", int: "int", float: "float"}.get(opt.type, "str")
+    return {"bool": BoolProperty, "int": IntProperty, "float": FloatProperty, "str": StringProperty}[kind](**kw)
 
 STATUS_ITEMS = [
     ("IDLE", "Idle", "No job has run"),
@@ -37,8 +54,7 @@ class RecGSSettings(bpy.types.PropertyGroup):
     # -- scene -------------------------------------------------------------------------------
     scene_dir: StringProperty(**_PATH, name="Scene Folder", subtype="DIR_PATH",
                               description="Survey folder holding images/ and a COLMAP model in sparse/0")
-    images: StringProperty(name="Image Folder", default="images",
-                           description="Photo folder inside the scene folder used for import and training")
+    images: _setting("images")
     photo_dir: StringProperty(**_PATH, name="Photo Folder", subtype="DIR_PATH",
                               description="Photos without a COLMAP model: Reconstruct from Photos runs "
                                           "structure from motion on them and writes the scene folder")
@@ -57,30 +73,15 @@ class RecGSSettings(bpy.types.PropertyGroup):
                                 description="Long side of the written frames at most this many pixels "
                                             "(0: the clip's own size)")
     # -- training ----------------------------------------------------------------------------
-    mode: EnumProperty(name="Mode", items=MODE_ITEMS, default="recgs",
-                       description="What the job trains")
-    max_minutes: FloatProperty(name="Time Limit", default=10.0, min=0.0, soft_max=600.0, unit="NONE",
-                               description="Wall-clock limit in minutes (0 = none)")
+    mode: _setting("mode")
+    max_minutes: _setting("max_minutes", unit="NONE")
     budget_auto: BoolProperty(name="Automatic Budget", default=True,
                               description="Stop adding Gaussians when held-out quality stops improving")
-    budget: IntProperty(name="Budget", default=500_000, min=1, soft_max=5_000_000,
-                        description="Maximum number of Gaussians")
-    downscale: IntProperty(name="Downscale", default=1, min=1, max=32,
-                           description="Train at the photo size divided by this")
-    max_side: IntProperty(name="Max Image Side", default=1600, min=0, soft_max=8192,
-                          description="Long side of the training images at most this many pixels "
-                                      "(0 = the photos' own size); memory and step time grow with it")
-    caustic_k: IntProperty(name="Caustic Filter Size", default=0, min=0, max=63, step=2,
-                           description="Side of the kept low-frequency block of the caustic filter: "
-                                       "0 = chosen from the residual spectrum (default); odd sizes "
-                                       "fix it (9 keeps -4..+4 cycles per image, as the paper)")
-    medium: EnumProperty(name="Water", default="auto",
-                         description="The water between seabed and camera (attenuation, backscatter), fitted with "
-                                     "the Gaussians so that they hold the seabed's true colour",
-                         items=[("auto", "Auto", "Model the water where the survey sees the seabed from several "
-                                                 "ranges and the water changes the photos measurably"),
-                                ("on", "On", "Always model the water"),
-                                ("off", "Off", "Train on the photos' colours as they are")])
+    budget: _setting("budget")
+    downscale: _setting("downscale")
+    max_side: _setting("max_side")
+    caustic_k: _setting("caustic_k")
+    medium: _setting("medium")
     water_view: EnumProperty(name="Show", default="TRUE_COLOUR", update=_water_view,
                              description="Show the seabed in its true colour, or as seen underwater (the fitted "
                                          "water as the world's volume, in EEVEE and Cycles)",
@@ -89,22 +90,14 @@ class RecGSSettings(bpy.types.PropertyGroup):
     water: StringProperty(name="Fitted Water", default="",
                           description="The water the last training job fitted (coefficients as JSON; empty: none)")
     # -- advanced ----------------------------------------------------------------------------
-    preset: EnumProperty(name="Preset", default="default", description="Training schedule",
-                         items=[("default", "Default", "Lean schedule: grows only what the scene needs"),
-                                ("vanilla", "Vanilla", "INRIA's 30k-iteration schedule")])
-    iterations: IntProperty(name="Iterations", default=0, min=0,
-                            description="Upper bound on optimisation steps (0 = the preset's)")
-    sh_degree: IntProperty(name="SH Degree", default=3, min=0, max=3,
-                           description="Cap on the spherical-harmonic degree")
-    seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the random generators")
-    holdout_every: IntProperty(name="Hold Out Every", default=8, min=0,
-                               description="Hold out every Nth photo for the quality figure (0 = none)")
-    checkpoint_every: FloatProperty(name="Checkpoint Every", default=10.0, min=0.0, soft_max=600.0,
-                                    description="Seconds between checkpoints (and live viewport updates)")
-    device: StringProperty(name="Device", default="cpu", description="cpu, cuda or mps (where torch has them)")
-    eager: BoolProperty(name="Plain PyTorch", default=False,
-                        description="Render with plain PyTorch only: neither numba's kernels nor torch.compile "
-                                    "(about 2.5x slower steps; the reference the fast paths are tested against)")
+    preset: _setting("preset")
+    iterations: _setting("iterations")
+    sh_degree: _setting("sh_degree")
+    seed: _setting("seed")
+    holdout_every: _setting("holdout_every")
+    checkpoint_every: _setting("checkpoint_every")
+    device: _setting("device")
+    eager: _setting("eager")
     out_dir: StringProperty(**_PATH, name="Output Folder", subtype="DIR_PATH",
                             description="Where the job writes checkpoint, PLY, metrics and images "
                                         "(empty: recgs_out inside the scene folder)")
@@ -150,8 +143,9 @@ def _zero_is_none(key: str):
             lambda s, value: setattr(s, key, value or 0))
 
 
-def _unless(key: str, default: str):
-    """A text setting whose ``default`` (or empty) means the option is not given."""
+def _unless_default(key: str):
+    """A text setting whose default (or empty) means the option is not given."""
+    default = TRAIN_OPTIONS[key].setting_default()
     return (lambda s: getattr(s, key) if getattr(s, key) and getattr(s, key) != default else None,
             lambda s, value: setattr(s, key, str(value)) if value else None)
 
@@ -166,9 +160,9 @@ SETTINGS = {
     "budget": (lambda s: "auto" if s.budget_auto else s.budget, _parse_budget),
     "downscale": _copy("downscale"), "max_side": _copy("max_side"), "sh_degree": _copy("sh_degree"),
     "seed": _copy("seed"), "holdout_every": _copy("holdout_every"), "checkpoint_every": _copy("checkpoint_every"),
-    "device": _unless("device", "cpu"), "eager": _copy("eager"),
+    "device": _unless_default("device"), "eager": _copy("eager"),
     "caustic_k": (lambda s: s.caustic_k if s.mode in CAUSTIC_MODES else None, _copy("caustic_k")[1]),
-    "images": _unless("images", "images"), "medium": _unless("medium", "auto"),
+    "images": _unless_default("images"), "medium": _unless_default("medium"),
 }
 #: ``train`` options (argparse dests) that the settings hold.
 SETTINGS_OPTIONS = tuple(SETTINGS)

@@ -24,113 +24,15 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from ..core.caustics.config import CAUSTIC_MODES, ESTIMATORS, MODES, CausticConfig
+from ..core.caustics.config import CAUSTIC_MODES
 from ..core.errors import RecGSError
-from ..core.train.config import MEDIUM_MODES
-from ..core.train.strategies import DEFAULT_STRATEGY, STRATEGIES
+from ..core.options.train import TRAIN_OPTIONS
 from .events import StopSignals, _finite_tree, _json_default, emit, fail, finite
 
 
 def add_train_arguments(p) -> None:
-    p.add_argument("scene_dir", type=Path, help="folder with images/ and sparse/0")
-    p.add_argument("--out", type=Path, required=True,
-                   help="output folder (checkpoint.pt, point_cloud.ply, metrics.json, the run's report)")
-    p.add_argument("--mode", choices=MODES, default="3dgs",
-                   help="3dgs: plain Gaussian Splatting; recgs: with caustic removal (RecGS); "
-                        "filter2d, joint, oracle: baselines (oracle trains on --gt-images). Use recgs for "
-                        "photos with caustics: it trains on as 3dgs by itself where it finds none")
-    p.add_argument("--preset", choices=["default", "vanilla"], default="default",
-                   help="default: lean schedule; vanilla: INRIA's 30k-iteration schedule (only to compare with it)")
-    p.add_argument("--max-minutes", type=float, default=None,
-                   help="wall-clock limit in minutes (default: none). Give one: the run uses all of it and ends "
-                        "with the model that scored best on the held-out photos")
-    p.add_argument("--iterations", type=int, default=None,
-                   help="upper bound on optimisation steps (default: the preset's); raise it with --resume to "
-                        "continue a run that reached it")
-    p.add_argument("--budget", default="auto",
-                   help="maximum number of Gaussians, or 'auto': stop adding Gaussians when held-out quality "
-                        "stops improving, at most one per 3.5 pixels of seabed (the training pixels over the views "
-                        "that see a point). A fixed number gives a smaller file and a faster viewer")
-    p.add_argument("--density", choices=sorted(STRATEGIES), default=None,
-                   help=f"density control (default {DEFAULT_STRATEGY}): adc (INRIA's clone/split by screen gradient) "
-                        "or mcmc (relocate faded Gaussians under a fixed budget, 3DGS-MCMC; 2-3.5 dB lower held-out "
-                        "than adc in 5-minute runs on clean surveys)")
-    p.add_argument("--medium", choices=MEDIUM_MODES, default=None,
-                   help="the water between seabed and camera (attenuation and backscatter), fitted with the "
-                        "Gaussians so that they hold the seabed's true colour: auto (default) where the survey sees "
-                        "each point from several ranges and the fitted water changes the photos measurably; on; off")
-    p.add_argument("--downscale", type=int, default=1,
-                   help="train at the photo size divided by N (after --max-side): 2 or 4 for quick trials")
-    p.add_argument("--max-side", type=int, default=None,
-                   help="long side of the training images at most this many pixels (default 1600, as the "
-                        "reference 3DGS code; 0 = the photos' own size): memory and step time grow with it")
-    p.add_argument("--max-memory", type=float, default=None,
-                   help="gigabytes the run may use (default: what the machine has free); a run that would need "
-                        "more is refused before it starts, and an automatic budget is capped to fit")
-    p.add_argument("--sh-degree", type=int, default=3, choices=range(4),
-                   help="cap on the SH degree (view-dependent colour); the default preset raises the degree "
-                        "only where it helps. 0 gives the smallest file")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random generators")
-    p.add_argument("--device", default="cpu", help="cpu, cuda or mps (where torch has them)")
-    p.add_argument("--images", default=None,
-                   help="train on this image folder instead of images/: a name inside the scene (e.g. clean) "
-                        "or a path; the same file names")
-    p.add_argument("--holdout-every", type=int, default=8,
-                   help="hold out every Nth image (by name, from the 5th) to score the model; 0 = none, which "
-                        "also leaves no score to keep the best model by")
-    p.add_argument("--init-ply", type=Path, default=None, help="start from these Gaussians")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    p.add_argument("--checkpoint-every", type=float, default=30.0,
-                   help="seconds between checkpoints (also the panel's live updates); a crash loses at most this")
-    p.add_argument("--eager", action="store_true",
-                   help="plain PyTorch rasterizer: neither numba's kernels nor torch.compile (about 2.5x slower "
-                        "steps; the reference the fast paths are tested against)")
-    p.add_argument("--compile-first", action="store_true",
-                   help="compile before the first step even on a cold cache (default: train eagerly "
-                        "while a background process warms the cache, then switch)")
-    g = p.add_argument_group("caustic removal")
-    g.add_argument("--gt-images", default=None,
-                   help="ground-truth images with the same names, for scoring (default: SCENE/clean if present)")
-    g.add_argument("--caustic-k", type=int, default=None,
-                   help="low-pass block size, odd (the paper: 9); 0 = from the residual spectrum (default)")
-    g.add_argument("--caustic-model", choices=["additive", "multiplicative"], default=None,
-                   help="additive: fit I - C (paper); multiplicative: fit I / gain "
-                        f"(default {CausticConfig.caustic_model})")
-    g.add_argument("--caustic-dc", choices=["zero", "keep"], default=None,
-                   help="recgs: C's mean per view: zero (default; caustics move light, they add none) "
-                        "or keep (the paper)")
-    g.add_argument("--warmup", type=int, default=None,
-                   help=f"recgs: most plain steps before the first recurrence (default {CausticConfig.warmup})")
-    g.add_argument("--recurrence-steps", type=int, default=None,
-                   help=f"recgs: steps per recurrence (default {CausticConfig.recurrence_steps})")
-    g.add_argument("--max-recurrences", type=int, default=None,
-                   help=f"recgs: at most this many recurrences (default {CausticConfig.max_recurrences})")
-    g.add_argument("--recurrence-tol", type=float, default=None,
-                   help="recgs: stop when the relative change of C falls below this "
-                        f"(default {CausticConfig.recurrence_tol})")
-    g.add_argument("--estimator", choices=list(ESTIMATORS), default=None,
-                   help="recgs: auto (default) picks passes where the survey sees each seabed point in a "
-                        "median of 2 or more independent passes and lowpass below; passes: each frame's target "
-                        "from the other frames that saw each point (the floor of their light, over the whole "
-                        "band; the survey's sparse points give the geometry); lowpass: C from the low-passed "
-                        "residual (the paper); likelihood: fit each point to the light its views most likely "
-                        "saw (the survey's distribution of caustic gains); consensus: the multi-view consensus "
-                        "of the photos warped with the model's depth; lightfield: a per-view light field "
-                        "(low band + coherent light over a floor; docs/dev/caustics.md)")
-    g.add_argument("--lf-lambda", type=float, default=None, help="lightfield: TV weight (default 0.05)")
-    g.add_argument("--lf-tau", type=float, default=None, help="lightfield: dead band in log light (default 0.02)")
-    g.add_argument("--consensus-stat", choices=["mean", "median", "min", "quantile"], default=None,
-                   help="consensus: the per-pixel statistic over the views that see it (default mean)")
-    g.add_argument("--fit-loss", choices=["l1", "l2"], default=None,
-                   help="recgs: data term of the recurrences: l1 (the paper; fits the views' median) or l2 "
-                        f"(their mean; no SSIM term); default {CausticConfig.fit_loss}")
-    g.add_argument("--robust-k", type=float, default=None,
-                   help="recgs: leave out of the loss pixels brighter than the render by more than k robust "
-                        "sigmas (an experiment: 0, the default, is the paper's plain loss; docs/dev/caustics.md)")
-    g.add_argument("--gain-restore", choices=["on", "off"], default=None,
-                   help="recgs with trimming: rescale the colours to the photos' mean light at the end (default on)")
-    p.add_argument("--keep-last", action="store_true",
-                   help="end with the last model, not the one that scored best on the held-out photos")
+    """The ``train`` options, from their one declaration (core/options/train.py)."""
+    TRAIN_OPTIONS.add_to(p)
 
 
 def _parse_budget(text: str):

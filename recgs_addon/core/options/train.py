@@ -1,0 +1,137 @@
+"""The ``train`` job's options (``python -m recgs_addon train``, the sidebar's Training panels,
+batch mode): :data:`TRAIN_OPTIONS`."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..caustics.config import ESTIMATORS, MODE_INFO, CausticConfig
+from ..train.config import MEDIUM_MODES, TrainConfig
+from ..train.strategies import DEFAULT_STRATEGY, STRATEGIES
+from .table import Option, OptionTable, Setting
+
+_CAUSTICS = "caustic removal"
+
+#: What each water setting does (labels and descriptions: the sidebar's Water).
+_MEDIUM = {
+    "auto": ("Auto", "Model the water where the survey sees the seabed from several ranges and the water "
+                     "changes the photos measurably"),
+    "on": ("On", "Always model the water"),
+    "off": ("Off", "Train on the photos' colours as they are"),
+}
+_PRESETS = (("default", "Default", "Lean schedule: grows only what the scene needs"),
+            ("vanilla", "Vanilla", "INRIA's 30k-iteration schedule, only to compare with it"))
+
+TRAIN_OPTIONS = OptionTable([
+    Option("scene_dir", "Folder with images/ and sparse/0", type=Path),
+    Option("--out", "Output folder (checkpoint.pt, point_cloud.ply, metrics.json, the run's report)",
+           type=Path, required=True),
+    Option("--mode", "What the job trains", default="3dgs",
+           choices=tuple((m, label, text) for m, (label, text) in MODE_INFO.items()),
+           note="Use recgs for photos with caustics: it trains on as 3dgs by itself where it finds none",
+           setting=Setting("Mode", default="recgs",
+                           why="the sidebar is for survey photos, which may hold caustics; RecGS trains as plain "
+                               "3DGS where it finds none")),
+    Option("--preset", "Training schedule", default="default", choices=_PRESETS, setting=Setting("Preset")),
+    Option("--max-minutes", "Wall-clock limit in minutes; the run uses all of it and ends with the model that "
+                            "scored best on the held-out photos", type=float,
+           note="Default: none; give one",
+           setting=Setting("Time Limit", default=10.0, minimum=0.0, soft_max=600.0,
+                           why="a job started with a click should end by itself; 0 = no limit")),
+    Option("--iterations", "Upper bound on optimisation steps (none given: the preset's)", type=int,
+           note="Raise it with --resume to continue a run that reached it",
+           setting=Setting("Iterations", default=0, minimum=0, why="0 stands for the preset's")),
+    Option("--budget", "Maximum number of Gaussians, or 'auto': stop adding Gaussians when held-out quality "
+                       "stops improving, at most one per 3.5 pixels of seabed (the training pixels over the views "
+                       "that see a point). A fixed number gives a smaller file and a faster viewer", default="auto",
+           setting=Setting("Budget", default=500_000, minimum=1, soft_max=5_000_000, kind="int",
+                           why="the sidebar's Automatic Budget switch stands for 'auto'; this is the number "
+                               "used when it is off")),
+    Option("--density", f"Density control (default {DEFAULT_STRATEGY}): adc (INRIA's clone/split by screen "
+                        "gradient) or mcmc (relocate faded Gaussians under a fixed budget, 3DGS-MCMC; 2-3.5 dB "
+                        "lower held-out than adc in 5-minute runs on clean surveys)",
+           choices=tuple(sorted(STRATEGIES))),
+    Option("--medium", "The water between seabed and camera (attenuation and backscatter), fitted with the "
+                       f"Gaussians so that they hold the seabed's true colour (default {TrainConfig.medium})",
+           choices=tuple((m, *_MEDIUM[m]) for m in MEDIUM_MODES),
+           setting=Setting("Water", default=TrainConfig.medium,
+                           why="the command line leaves it to the trainer's default, the same")),
+    Option("--downscale", "Train at the photo size divided by this (after the long side's cap): 2 or 4 for "
+                          "quick trials", type=int, default=TrainConfig.downscale,
+           setting=Setting("Downscale", minimum=1, maximum=32)),
+    Option("--max-side", f"Long side of the training images at most this many pixels (default "
+                         f"{TrainConfig.max_side}, as the reference 3DGS code; 0 = the photos' own size): memory and "
+                         "step time grow with it", type=int,
+           setting=Setting("Max Image Side", default=TrainConfig.max_side, minimum=0, soft_max=8192,
+                           why="the command line leaves it to the trainer's default, the same")),
+    Option("--max-memory", "Gigabytes the run may use (default: what the machine has free); a run that would need "
+                           "more is refused before it starts, and an automatic budget is capped to fit", type=float),
+    Option("--sh-degree", "Cap on the spherical-harmonic degree (view-dependent colour); the default preset "
+                          "raises the degree only where it helps. 0 gives the smallest file", type=int,
+           default=TrainConfig.sh_degree, choices=tuple(range(4)),
+           setting=Setting("SH Degree", minimum=0, maximum=3)),
+    Option("--seed", "Seed of the random generators", type=int, default=TrainConfig.seed,
+           setting=Setting("Seed", minimum=0)),
+    Option("--device", "cpu, cuda or mps (where torch has them)", default=TrainConfig.device,
+           setting=Setting("Device")),
+    Option("--images", "Train on this image folder instead of images/: a name inside the scene (e.g. clean) or "
+                       "a path; the same file names",
+           setting=Setting("Image Folder", default="images", why="the folder the scene was imported from")),
+    Option("--holdout-every", "Hold out every Nth photo (by name, from the 5th) to score the model; 0 = none, "
+                              "which also leaves no score to keep the best model by", type=int,
+           default=TrainConfig.holdout_every, setting=Setting("Hold Out Every", minimum=0)),
+    Option("--init-ply", "Start from these Gaussians", type=Path),
+    Option("--resume", "Continue from OUT/checkpoint.pt", type=bool),
+    Option("--checkpoint-every", "Seconds between checkpoints (also the sidebar's live updates); a crash loses at "
+                                 "most this", type=float, default=30.0,
+           setting=Setting("Checkpoint Every", default=10.0, minimum=0.0, soft_max=600.0,
+                           why="the viewport's live preview updates with each checkpoint")),
+    Option("--eager", "Plain PyTorch rasterizer: neither numba's kernels nor torch.compile (about 2.5x slower "
+                      "steps; the reference the fast paths are tested against)", type=bool,
+           setting=Setting("Plain PyTorch", default=False)),
+    Option("--compile-first", "Compile before the first step even on a cold cache (default: train eagerly while a "
+                              "background process warms the cache, then switch)", type=bool),
+    Option("--keep-last", "End with the last model, not the one that scored best on the held-out photos",
+           type=bool),
+    Option("--gt-images", "Ground-truth images with the same names, for scoring (default: SCENE/clean if present)",
+           group=_CAUSTICS),
+    Option("--caustic-k", "Side of the kept low-frequency block of the caustic filter, odd (the paper: 9, which "
+                          "keeps -4..+4 cycles per image); 0 = chosen from the residual spectrum (default)",
+           type=int, group=_CAUSTICS,
+           setting=Setting("Caustic Filter Size", default=CausticConfig.caustic_k, minimum=0, maximum=63, step=2,
+                           why="the command line leaves it to the method's default, the same")),
+    Option("--caustic-model", f"additive: fit I - C (the paper); multiplicative: fit I / gain (default "
+                              f"{CausticConfig.caustic_model})", choices=("additive", "multiplicative"),
+           group=_CAUSTICS),
+    Option("--caustic-dc", "recgs: C's mean per view: zero (default; caustics move light, they add none) or keep "
+                           "(the paper)", choices=("zero", "keep"), group=_CAUSTICS),
+    Option("--warmup", f"recgs: most plain steps before the first recurrence (default {CausticConfig.warmup})",
+           type=int, group=_CAUSTICS),
+    Option("--recurrence-steps", f"recgs: steps per recurrence (default {CausticConfig.recurrence_steps})",
+           type=int, group=_CAUSTICS),
+    Option("--max-recurrences", f"recgs: at most this many recurrences (default {CausticConfig.max_recurrences})",
+           type=int, group=_CAUSTICS),
+    Option("--recurrence-tol", "recgs: stop when the relative change of C falls below this (default "
+                               f"{CausticConfig.recurrence_tol})", type=float, group=_CAUSTICS),
+    Option("--estimator", "recgs: auto (default) picks passes where the survey sees each seabed point in a median "
+                          "of 2 or more independent passes and lowpass below; passes: each frame's target from the "
+                          "other frames that saw each point (the floor of their light, over the whole band; the "
+                          "survey's sparse points give the geometry); lowpass: C from the low-passed residual (the "
+                          "paper); likelihood: fit each point to the light its views most likely saw (the survey's "
+                          "distribution of caustic gains); consensus: the multi-view consensus of the photos warped "
+                          "with the model's depth; lightfield: a per-view light field (low band + coherent light "
+                          "over a floor; docs/dev/caustics.md)", choices=ESTIMATORS, group=_CAUSTICS),
+    Option("--lf-lambda", f"lightfield: TV weight (default {CausticConfig.lf_lambda})", type=float, group=_CAUSTICS),
+    Option("--lf-tau", f"lightfield: dead band in log light (default {CausticConfig.lf_tau})", type=float,
+           group=_CAUSTICS),
+    Option("--consensus-stat", "consensus: the per-pixel statistic over the views that see it (default "
+                               f"{CausticConfig.consensus_stat})", choices=("mean", "median", "min", "quantile"),
+           group=_CAUSTICS),
+    Option("--fit-loss", "recgs: data term of the recurrences: l1 (the paper; fits the views' median) or l2 (their "
+                         f"mean; no SSIM term); default {CausticConfig.fit_loss}", choices=("l1", "l2"),
+           group=_CAUSTICS),
+    Option("--robust-k", "recgs: leave out of the loss pixels brighter than the render by more than k robust "
+                         "sigmas (an experiment: 0, the default, is the paper's plain loss; docs/dev/caustics.md)",
+           type=float, group=_CAUSTICS),
+    Option("--gain-restore", "recgs with trimming: rescale the colours to the photos' mean light at the end "
+                             "(default on)", choices=("on", "off"), group=_CAUSTICS),
+])
