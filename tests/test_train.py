@@ -908,3 +908,17 @@ def test_time_limit_keeps_room_for_the_finishing(small_scene):
     assert tr.finishing_reserve() == pytest.approx(0.75)
     assert tr.train_until() == "time limit"
     assert 2.25 <= tr.elapsed < 3.0
+
+
+def test_progress_says_the_share_done_from_the_eta_or_the_time_limit(small_scene):
+    """The share done a progress report carries (the sidebar's bar shows it as it is): before a
+    step is timed, the time limit's share; then elapsed over elapsed plus the ETA."""
+    tr = make_trainer(small_scene, tiny_cfg(max_minutes=2.0))
+    tr.elapsed = 30.0
+    assert tr.progress(0.0, {}).fraction == pytest.approx(0.25)
+    tr.step, tr.elapsed = 10, 60.0      # 6 s a step, 110 steps left, but 60 s of the limit
+    p = tr.progress(0.0, {})
+    assert p.eta == pytest.approx(60.0) and p.fraction == pytest.approx(0.5)
+    free = make_trainer(small_scene, tiny_cfg())
+    free.elapsed = 30.0
+    assert free.progress(0.0, {}).fraction == 0.0

@@ -435,3 +435,21 @@ def test_panel_settings_round_trip_through_the_train_command_line(bpy_session):
     for key in SETTINGS:
         assert SETTINGS[key][0](fresh) == SETTINGS[key][0](s), key
     assert (fresh.budget_auto, fresh.budget, fresh.images, fresh.medium) == (False, 1234, "photos", "off")
+
+
+def test_panel_progress_is_the_jobs_share_done(bpy_session):
+    """The Training panel's bar shows the share done the job reports; the panel does not work
+    it out again from its own time limit."""
+    from types import SimpleNamespace
+
+    from recgs_addon.blender import job_follow
+
+    s = bpy.context.scene.recgs
+    s.max_minutes = 1.0
+    a = SimpleNamespace(job=SimpleNamespace(kind="train"), object_name="RecGS")
+    job_follow._apply(a, s, {"event": "progress", "phase": "densify", "iteration": 3, "elapsed": 50.0,
+                             "eta": None, "fraction": 0.1})
+    assert s.progress == pytest.approx(0.1) and s.eta == -1.0
+    job_follow._apply(a, s, {"event": "progress", "phase": "refine", "iteration": 9, "elapsed": 60.0,
+                             "eta": 20.0, "fraction": 0.75})
+    assert s.progress == pytest.approx(0.75) and s.eta == pytest.approx(20.0)

@@ -164,10 +164,7 @@ def _apply(a: ActiveJob, s, ev: dict) -> None:
         s.eta = float(eta) if eta is not None else -1.0
         if ev.get("psnr_test") is not None:
             s.psnr_test = float(ev["psnr_test"])
-        if eta is not None and s.elapsed + eta > 0:
-            s.progress = min(1.0, s.elapsed / (s.elapsed + eta))
-        elif s.max_minutes > 0:
-            s.progress = min(1.0, s.elapsed / (60 * s.max_minutes))
+        s.progress = min(1.0, float(ev.get("fraction") or 0.0))   # the job's own share done
     elif kind == "checkpoint":
         s.gaussians = int(ev.get("gaussians") or s.gaussians)
         obj = bpy.data.objects.get(a.object_name)

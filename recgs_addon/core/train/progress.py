@@ -19,6 +19,8 @@ class Progress:
     sh_degree: int
     elapsed: float
     eta: Optional[float]
+    #: share of the run done, 0..1: by the ETA once steps are timed, before that by the time limit
+    fraction: float = 0.0
     psnr_test: Optional[float] = None
     ssim_test: Optional[float] = None
     psnr_test_gt: Optional[float] = None   # against the survey's ground truth, where it has one
@@ -67,7 +69,14 @@ class ProgressMixin:
             eta = per * (c.iterations - self.step)
             if c.max_minutes is not None:
                 eta = min(eta, max(0.0, 60 * c.max_minutes - self.elapsed))
+        if eta is not None and self.elapsed + eta > 0:
+            fraction = self.elapsed / (self.elapsed + eta)
+        elif c.max_minutes is not None:
+            fraction = self.elapsed / (60 * c.max_minutes)
+        else:
+            fraction = 0.0
         phase = phase or self.phase
         return Progress(phase, self.step, float(loss), int(self.params["means"].shape[0]), self.sh_degree,
                         round(self.elapsed, 2), None if eta is None else round(eta, 1),
-                        metrics.get("psnr"), metrics.get("ssim"), metrics.get("psnr_gt"), extra)
+                        round(min(1.0, fraction), 4), metrics.get("psnr"), metrics.get("ssim"),
+                        metrics.get("psnr_gt"), extra)
