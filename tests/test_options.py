@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from recgs_addon.cli import build_parser
+from recgs_addon.core.options.capture import SFM_OPTIONS, VIDEO_OPTIONS
 from recgs_addon.core.options.table import SAME, Option, OptionTable, Setting
 from recgs_addon.core.options.train import TRAIN_OPTIONS
 from recgs_addon.core.train.config import TrainConfig
@@ -15,17 +16,25 @@ from recgs_addon.core.train.config import TrainConfig
 PKG = Path(__file__).resolve().parents[1] / "recgs_addon"
 
 
-def _train_parser():
+TABLES = {"train": TRAIN_OPTIONS, "sfm": SFM_OPTIONS, "video": VIDEO_OPTIONS}
+#: sidebar settings of the capture commands' options: property -> (table, option)
+CAPTURE_SETTINGS = {"link_photos": (SFM_OPTIONS, "link"), "video_frames": (VIDEO_OPTIONS, "frames"),
+                    "video_every": (VIDEO_OPTIONS, "every"), "video_max_side": (VIDEO_OPTIONS, "max_side")}
+
+
+def _parser(command):
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
-    return sub.choices["train"]
+    return sub.choices[command]
 
 
-def test_the_train_parser_is_the_table():
-    actions = [a for a in _train_parser()._actions if a.dest != "help"]
-    assert [a.dest for a in actions] == [o.dest for o in TRAIN_OPTIONS], "an option the table does not declare"
+@pytest.mark.parametrize("command", sorted(TABLES))
+def test_the_parsers_are_the_tables(command):
+    table = TABLES[command]
+    actions = [a for a in _parser(command)._actions if a.dest != "help"]
+    assert [a.dest for a in actions] == [o.dest for o in table], "an option the table does not declare"
     for a in actions:
-        opt = TRAIN_OPTIONS[a.dest]
+        opt = table[a.dest]
         assert a.help == opt.cli_help()
         assert (a.default, tuple(a.choices or ())) == ((False if opt.type is bool else opt.default), opt.values), a.dest
 
@@ -58,21 +67,27 @@ def test_the_sidebar_settings_are_the_table():
     props = {k: v for k, v in inspect.get_annotations(properties.RecGSSettings, eval_str=True).items()
              if hasattr(v, "function")}
     assert set(properties.SETTINGS) == {o.dest for o in TRAIN_OPTIONS.settings()}
-    for opt in TRAIN_OPTIONS.settings():
-        kw = props[opt.dest].keywords
-        assert (kw["name"], kw["description"], kw["default"]) == (opt.setting.label, opt.help, opt.setting_default())
+    pairs = [(o.dest, o) for o in TRAIN_OPTIONS.settings()]
+    pairs += [(prop, table[dest]) for prop, (table, dest) in CAPTURE_SETTINGS.items()]
+    assert {d for t in (SFM_OPTIONS, VIDEO_OPTIONS) for d in (o.dest for o in t.settings())} == \
+        {dest for _, dest in CAPTURE_SETTINGS.values()}
+    for prop, opt in pairs:
+        kw = props[prop].keywords
+        assert (kw["name"], kw["description"], kw["default"]) == (opt.setting.label, opt.setting_help(),
+                                                                  opt.setting_default()), prop
     assert bpy is not None
 
 
 def test_no_option_is_declared_outside_the_table():
-    """No ``add_argument`` in the train command's module, and each sidebar setting of an option
-    is made by ``_setting`` from the table, not by a property call of its own."""
-    tree = ast.parse((PKG / "commands" / "train.py").read_text())
-    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "attr", "") == "add_argument"]
-    assert not calls
+    """No ``add_argument`` in the train and capture commands' modules, and each sidebar setting
+    of an option is made by ``_setting`` from its table, not by a property call of its own."""
+    for name in ("train.py", "capture.py"):
+        tree = ast.parse((PKG / "commands" / name).read_text())
+        calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "attr", "") == "add_argument"]
+        assert not calls, name
     tree = ast.parse((PKG / "blender" / "properties.py").read_text())
     cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "RecGSSettings")
-    dests = {o.dest for o in TRAIN_OPTIONS.settings()}
+    dests = {o.dest for o in TRAIN_OPTIONS.settings()} | set(CAPTURE_SETTINGS)
     own = [n.target.id for n in cls.body if isinstance(n, ast.AnnAssign) and n.target.id in dests
            and not (isinstance(n.annotation, ast.Call) and getattr(n.annotation.func, "id", "") == "_setting")]
     assert not own, own

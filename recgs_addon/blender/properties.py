@@ -10,20 +10,20 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from ..core.caustics.config import CAUSTIC_MODES
-from ..core.capture.frame_choice import DEFAULT_FRAMES, MIN_FRAMES
-from ..core.capture.video import DEFAULT_MAX_SIDE
+from ..core.options.capture import SFM_OPTIONS, VIDEO_OPTIONS
 from ..core.options.train import TRAIN_OPTIONS
 
 #: Folder settings may be relative to the .blend ("//..."); Blender 4.5+ wants that declared.
 _PATH = {"options": {"PATH_SUPPORTS_BLEND_RELATIVE"}} if bpy.app.version >= (4, 5, 0) else {}
 
 
-def _setting(dest: str, **extra):
-    """The bpy property of ``train`` option ``dest``, from its declaration (core/options/train.py):
-    label, description (the option's help), default, choices and range."""
-    opt = TRAIN_OPTIONS[dest]
+def _setting(dest: str, table=TRAIN_OPTIONS, **extra):
+    """The bpy property of option ``dest`` of ``table`` (``train``'s unless given), from its
+    declaration (core/options/): label, description (the option's help), default, choices and
+    range."""
+    opt = table[dest]
     st = opt.setting
-    kw = {"name": st.label, "description": opt.help, "default": opt.setting_default(), **extra}
+    kw = {"name": st.label, "description": opt.setting_help(), "default": opt.setting_default(), **extra}
     for key, value in (("min", st.minimum), ("max", st.maximum), ("soft_max", st.soft_max), ("step", st.step)):
         if value is not None:
             kw[key] = value
@@ -58,20 +58,14 @@ class RecGSSettings(bpy.types.PropertyGroup):
     photo_dir: StringProperty(**_PATH, name="Photo Folder", subtype="DIR_PATH",
                               description="Photos without a COLMAP model: Reconstruct from Photos runs "
                                           "structure from motion on them and writes the scene folder")
-    link_photos: BoolProperty(name="Link Photos", default=False,
-                              description="Reconstruct: symlink the photos into the scene folder instead "
-                                          "of copying them")
+    link_photos: _setting("link", SFM_OPTIONS)
     video_path: StringProperty(**_PATH, name="Video File", subtype="FILE_PATH",
                                description="A clip of the survey (MP4, MOV, MKV): Import Video chooses sharp, "
                                            "distinct frames, runs structure from motion on them and writes the "
                                            "scene folder")
-    video_frames: IntProperty(name="Frames", default=DEFAULT_FRAMES, min=MIN_FRAMES, soft_max=1000,
-                              description="About this many frames of the clip (at most 4 a second of it)")
-    video_every: FloatProperty(name="Every", default=0.0, min=0.0, soft_max=10.0, unit="TIME_ABSOLUTE",
-                               description="One frame every this many seconds instead of a count (0: use Frames)")
-    video_max_side: IntProperty(name="Max Frame Side", default=DEFAULT_MAX_SIDE, min=0, soft_max=8192,
-                                description="Long side of the written frames at most this many pixels "
-                                            "(0: the clip's own size)")
+    video_frames: _setting("frames", VIDEO_OPTIONS)
+    video_every: _setting("every", VIDEO_OPTIONS, unit="TIME_ABSOLUTE")
+    video_max_side: _setting("max_side", VIDEO_OPTIONS)
     # -- training ----------------------------------------------------------------------------
     mode: _setting("mode")
     max_minutes: _setting("max_minutes", unit="NONE")

@@ -9,47 +9,18 @@ import sys
 import time
 from pathlib import Path
 
+from ..core.options.capture import SFM_OPTIONS, VIDEO_OPTIONS
 from .events import StopSignals, emit, fail
 
 
 def add_sfm_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("photo_dir", type=Path, help="folder of overlapping photos")
-    p.add_argument("--out", type=Path, required=True, help="scene folder to write (images/, sparse/0)")
-    p.add_argument("--link", action="store_true", help="symlink the photos instead of copying them")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing sparse/0")
-    p.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model (one camera shared)")
-    p.add_argument("--threads", type=int, default=2, help="CPU threads for SfM (features, matching, mapping)")
+    """The ``sfm`` options, from their one declaration (core/options/capture.py)."""
+    SFM_OPTIONS.add_to(p)
 
 
 def add_video_arguments(p: argparse.ArgumentParser) -> None:
-    from ..core.capture.frame_choice import DEFAULT_FRAMES
-    from ..core.capture.video import DEFAULT_MAX_SIDE, IMAGE_FORMATS, JPEG_QUALITY
-
-    p.add_argument("clip", type=Path, help="video file (MP4, MOV, MKV, ...)")
-    p.add_argument("--out", type=Path, required=True, help="survey folder to write (images/, frames.json, sparse/0)")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
-                   help=f"about this many frames, at most 4 a second of clip (default {DEFAULT_FRAMES})")
-    g.add_argument("--every", type=float, default=None, metavar="SECONDS",
-                   help="one frame every SECONDS instead of a count")
-    p.add_argument("--max-side", type=int, default=DEFAULT_MAX_SIDE,
-                   help="long side of the written frames at most this many px "
-                        f"(0: the clip's size; default {DEFAULT_MAX_SIDE})")
-    p.add_argument("--format", choices=IMAGE_FORMATS, default="jpg", help="image format of the frames (default jpg)")
-    p.add_argument("--quality", type=int, default=JPEG_QUALITY, help=f"JPEG quality (default {JPEG_QUALITY})")
-    p.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model (one camera for the clip)")
-    p.add_argument("--overlap", type=int, default=10, help="match each frame with the next N frames (default 10)")
-    p.add_argument("--loop-detection", type=Path, default=None, metavar="VOCAB_TREE",
-                   help="also match frames that look alike anywhere in the clip, with this COLMAP "
-                        "vocabulary tree file (off by default)")
-    p.add_argument("--min-registered", type=float, default=0.5, metavar="SHARE",
-                   help="fail unless SfM registers at least this share of the frames (default 0.5)")
-    p.add_argument("--threads", type=int, default=2, help="CPU threads for decoding and SfM")
-    p.add_argument("--overwrite", action="store_true",
-                   help="start again: replace the folder's frames, database and model")
-    p.add_argument("--verbose", action="store_true", help="keep COLMAP's own log lines on stderr")
-
-
+    """The ``video`` options, from their one declaration (core/options/capture.py)."""
+    VIDEO_OPTIONS.add_to(p)
 
 
 def _stage_photos(photo_dir: Path, image_dir: Path, names: list[str], link: bool) -> None:

@@ -11,7 +11,7 @@ SAME = object()
 @dataclass(frozen=True)
 class Setting:
     """How the sidebar shows an option: its label and range, and its default where that differs
-    from the command line's (``why`` then says why, for the user guide)."""
+    from the command line's (``why`` then says why; the tooltip ends with it)."""
     label: str
     default: Any = SAME
     why: str = ""
@@ -38,6 +38,8 @@ class Option:
     #: said on the command line only, after ``help`` (what concerns the command line alone)
     note: str = ""
     group: str = ""
+    #: options of one name here exclude each other on the command line
+    exclusive: str = ""
     required: bool = False
     metavar: Optional[str] = None
     setting: Optional[Setting] = None
@@ -51,10 +53,12 @@ class Option:
         return tuple(c[0] if isinstance(c, tuple) else c for c in self.choices)
 
     def cli_help(self) -> str:
+        """The command line's help: the help, the default (unless the help says it), each
+        labelled choice's description, and the note."""
         text = self.help
+        if self.default is not None and self.type is not bool and "(default" not in text:
+            text += f" (default {self.default})"
         if self.choices and isinstance(self.choices[0], tuple):
-            if self.default is not None:
-                text += f" (default {self.default})"
             text += ". " + "; ".join(f"{v}: {d}" for v, _, d in self.choices)
         return f"{text}. {self.note}" if self.note else text
 
@@ -75,6 +79,10 @@ class Option:
         if self.required:
             kw["required"] = True
         parser.add_argument(self.flag, **kw)
+
+    def setting_help(self) -> str:
+        """The sidebar's tooltip: the help, and what the setting's own default or values mean."""
+        return f"{self.help}. {self.setting.why}" if self.setting is not None and self.setting.why else self.help
 
     def setting_default(self):
         """The sidebar's default (the command line's unless the setting says otherwise)."""
@@ -104,7 +112,8 @@ class OptionTable:
         return [o for o in self.options if o.setting is not None]
 
     def add_to(self, parser) -> None:
-        """Every option to an argparse parser, those of a ``group`` in an argument group."""
+        """Every option to an argparse parser, those of a ``group`` in an argument group and those
+        of an ``exclusive`` set in a mutually exclusive group."""
         groups: dict = {}
         for opt in self.options:
             target = parser
@@ -112,4 +121,9 @@ class OptionTable:
                 if opt.group not in groups:
                     groups[opt.group] = parser.add_argument_group(opt.group)
                 target = groups[opt.group]
+            if opt.exclusive:
+                key = ("exclusive", opt.exclusive)
+                if key not in groups:
+                    groups[key] = target.add_mutually_exclusive_group()
+                target = groups[key]
             opt.add_to(target)

@@ -29,23 +29,23 @@ TRAIN_OPTIONS = OptionTable([
            choices=tuple((m, label, text) for m, (label, text) in MODE_INFO.items()),
            note="Use recgs for photos with caustics: it trains on as 3dgs by itself where it finds none",
            setting=Setting("Mode", default="recgs",
-                           why="the sidebar is for survey photos, which may hold caustics; RecGS trains as plain "
-                               "3DGS where it finds none")),
+                           why="The sidebar starts with RecGS: survey photos may hold caustics, and RecGS trains "
+                               "as plain 3DGS where it finds none")),
     Option("--preset", "Training schedule", default="default", choices=_PRESETS, setting=Setting("Preset")),
     Option("--max-minutes", "Wall-clock limit in minutes; the run uses all of it and ends with the model that "
                             "scored best on the held-out photos", type=float,
            note="Default: none; give one",
            setting=Setting("Time Limit", default=10.0, minimum=0.0, soft_max=600.0,
-                           why="a job started with a click should end by itself; 0 = no limit")),
+                           why="0 = no limit; the sidebar starts at 10 minutes so that a job started with a "
+                               "click ends by itself")),
     Option("--iterations", "Upper bound on optimisation steps (none given: the preset's)", type=int,
            note="Raise it with --resume to continue a run that reached it",
-           setting=Setting("Iterations", default=0, minimum=0, why="0 stands for the preset's")),
+           setting=Setting("Iterations", default=0, minimum=0, why="0 = the preset's")),
     Option("--budget", "Maximum number of Gaussians, or 'auto': stop adding Gaussians when held-out quality "
                        "stops improving, at most one per 3.5 pixels of seabed (the training pixels over the views "
                        "that see a point). A fixed number gives a smaller file and a faster viewer", default="auto",
            setting=Setting("Budget", default=500_000, minimum=1, soft_max=5_000_000, kind="int",
-                           why="the sidebar's Automatic Budget switch stands for 'auto'; this is the number "
-                               "used when it is off")),
+                           why="The number used while Automatic Budget is off")),
     Option("--density", f"Density control (default {DEFAULT_STRATEGY}): adc (INRIA's clone/split by screen "
                         "gradient) or mcmc (relocate faded Gaussians under a fixed budget, 3DGS-MCMC; 2-3.5 dB "
                         "lower held-out than adc in 5-minute runs on clean surveys)",
@@ -53,16 +53,14 @@ TRAIN_OPTIONS = OptionTable([
     Option("--medium", "The water between seabed and camera (attenuation and backscatter), fitted with the "
                        f"Gaussians so that they hold the seabed's true colour (default {TrainConfig.medium})",
            choices=tuple((m, *_MEDIUM[m]) for m in MEDIUM_MODES),
-           setting=Setting("Water", default=TrainConfig.medium,
-                           why="the command line leaves it to the trainer's default, the same")),
+           setting=Setting("Water", default=TrainConfig.medium)),
     Option("--downscale", "Train at the photo size divided by this (after the long side's cap): 2 or 4 for "
                           "quick trials", type=int, default=TrainConfig.downscale,
            setting=Setting("Downscale", minimum=1, maximum=32)),
     Option("--max-side", f"Long side of the training images at most this many pixels (default "
                          f"{TrainConfig.max_side}, as the reference 3DGS code; 0 = the photos' own size): memory and "
                          "step time grow with it", type=int,
-           setting=Setting("Max Image Side", default=TrainConfig.max_side, minimum=0, soft_max=8192,
-                           why="the command line leaves it to the trainer's default, the same")),
+           setting=Setting("Max Image Side", default=TrainConfig.max_side, minimum=0, soft_max=8192)),
     Option("--max-memory", "Gigabytes the run may use (default: what the machine has free); a run that would need "
                            "more is refused before it starts, and an automatic budget is capped to fit", type=float),
     Option("--sh-degree", "Cap on the spherical-harmonic degree (view-dependent colour); the default preset "
@@ -75,7 +73,7 @@ TRAIN_OPTIONS = OptionTable([
            setting=Setting("Device")),
     Option("--images", "Train on this image folder instead of images/: a name inside the scene (e.g. clean) or "
                        "a path; the same file names",
-           setting=Setting("Image Folder", default="images", why="the folder the scene was imported from")),
+           setting=Setting("Image Folder", default="images")),
     Option("--holdout-every", "Hold out every Nth photo (by name, from the 5th) to score the model; 0 = none, "
                               "which also leaves no score to keep the best model by", type=int,
            default=TrainConfig.holdout_every, setting=Setting("Hold Out Every", minimum=0)),
@@ -84,7 +82,8 @@ TRAIN_OPTIONS = OptionTable([
     Option("--checkpoint-every", "Seconds between checkpoints (also the sidebar's live updates); a crash loses at "
                                  "most this", type=float, default=30.0,
            setting=Setting("Checkpoint Every", default=10.0, minimum=0.0, soft_max=600.0,
-                           why="the viewport's live preview updates with each checkpoint")),
+                           why="The sidebar checkpoints every 10 seconds: the viewport's live preview updates "
+                               "with each checkpoint")),
     Option("--eager", "Plain PyTorch rasterizer: neither numba's kernels nor torch.compile (about 2.5x slower "
                       "steps; the reference the fast paths are tested against)", type=bool,
            setting=Setting("Plain PyTorch", default=False)),
@@ -97,8 +96,8 @@ TRAIN_OPTIONS = OptionTable([
     Option("--caustic-k", "Side of the kept low-frequency block of the caustic filter, odd (the paper: 9, which "
                           "keeps -4..+4 cycles per image); 0 = chosen from the residual spectrum (default)",
            type=int, group=_CAUSTICS,
-           setting=Setting("Caustic Filter Size", default=CausticConfig.caustic_k, minimum=0, maximum=63, step=2,
-                           why="the command line leaves it to the method's default, the same")),
+           setting=Setting("Caustic Filter Size", default=CausticConfig.caustic_k, minimum=0, maximum=63,
+                           step=2)),
     Option("--caustic-model", f"additive: fit I - C (the paper); multiplicative: fit I / gain (default "
                               f"{CausticConfig.caustic_model})", choices=("additive", "multiplicative"),
            group=_CAUSTICS),
