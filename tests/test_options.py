@@ -10,13 +10,15 @@ import pytest
 from recgs_addon.cli import build_parser
 from recgs_addon.core.options.capture import SFM_OPTIONS, VIDEO_OPTIONS
 from recgs_addon.core.options.table import SAME, Option, OptionTable, Setting
-from recgs_addon.core.options.train import TRAIN_OPTIONS
+from recgs_addon.core.options.scene import IMPORT_OPTIONS, INFO_OPTIONS, SCENE_DIR
+from recgs_addon.core.options.train import RENDER_OPTIONS, TRAIN_OPTIONS
 from recgs_addon.core.train.config import TrainConfig
 
 PKG = Path(__file__).resolve().parents[1] / "recgs_addon"
 
 
-TABLES = {"train": TRAIN_OPTIONS, "sfm": SFM_OPTIONS, "video": VIDEO_OPTIONS}
+TABLES = {"train": TRAIN_OPTIONS, "sfm": SFM_OPTIONS, "video": VIDEO_OPTIONS, "import": IMPORT_OPTIONS,
+          "info": INFO_OPTIONS, "render": RENDER_OPTIONS}
 #: sidebar settings of the capture commands' options: property -> (table, option)
 CAPTURE_SETTINGS = {"link_photos": (SFM_OPTIONS, "link"), "video_frames": (VIDEO_OPTIONS, "frames"),
                     "video_every": (VIDEO_OPTIONS, "every"), "video_max_side": (VIDEO_OPTIONS, "max_side")}
@@ -51,6 +53,13 @@ def test_option_defaults_are_the_configs():
     assert checked >= 4
 
 
+def test_shared_options_are_one_declaration():
+    """The survey folder and the plain-PyTorch switch are one declaration each, wherever taken."""
+    assert TRAIN_OPTIONS["scene_dir"] is SCENE_DIR is IMPORT_OPTIONS["scene_dir"]
+    assert RENDER_OPTIONS["eager"] is TRAIN_OPTIONS["eager"]
+    assert SFM_OPTIONS["camera_model"] is VIDEO_OPTIONS["camera_model"]
+
+
 def test_a_table_refuses_a_second_declaration_and_says_why_a_sidebar_default_differs():
     with pytest.raises(ValueError, match="declared twice"):
         OptionTable([Option("--seed", "a"), Option("--seed", "b")])
@@ -66,7 +75,8 @@ def test_the_sidebar_settings_are_the_table():
 
     props = {k: v for k, v in inspect.get_annotations(properties.RecGSSettings, eval_str=True).items()
              if hasattr(v, "function")}
-    assert set(properties.SETTINGS) == {o.dest for o in TRAIN_OPTIONS.settings()}
+    # the options a job takes from the sidebar (the scene folder is the job's positional argument)
+    assert set(properties.SETTINGS) == {o.dest for o in TRAIN_OPTIONS.settings() if o.flag.startswith("-")}
     pairs = [(o.dest, o) for o in TRAIN_OPTIONS.settings()]
     pairs += [(prop, table[dest]) for prop, (table, dest) in CAPTURE_SETTINGS.items()]
     assert {d for t in (SFM_OPTIONS, VIDEO_OPTIONS) for d in (o.dest for o in t.settings())} == \
@@ -81,7 +91,7 @@ def test_the_sidebar_settings_are_the_table():
 def test_no_option_is_declared_outside_the_table():
     """No ``add_argument`` in the train and capture commands' modules, and each sidebar setting
     of an option is made by ``_setting`` from its table, not by a property call of its own."""
-    for name in ("train.py", "capture.py"):
+    for name in ("train.py", "capture.py", "render.py", "scene.py"):
         tree = ast.parse((PKG / "commands" / name).read_text())
         calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "attr", "") == "add_argument"]
         assert not calls, name

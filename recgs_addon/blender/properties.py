@@ -11,6 +11,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, Po
 
 from ..core.caustics.config import CAUSTIC_MODES
 from ..core.options.capture import SFM_OPTIONS, VIDEO_OPTIONS
+from ..core.options.scene import IMPORT_OPTIONS as SCENE_TABLE
 from ..core.options.train import TRAIN_OPTIONS
 
 #: Folder settings may be relative to the .blend ("//..."); Blender 4.5+ wants that declared.
@@ -52,8 +53,7 @@ def _water_view(settings, context) -> None:
 
 class RecGSSettings(bpy.types.PropertyGroup):
     # -- scene -------------------------------------------------------------------------------
-    scene_dir: StringProperty(**_PATH, name="Scene Folder", subtype="DIR_PATH",
-                              description="Survey folder holding images/ and a COLMAP model in sparse/0")
+    scene_dir: _setting("scene_dir", SCENE_TABLE, subtype="DIR_PATH", **_PATH)
     images: _setting("images")
     photo_dir: StringProperty(**_PATH, name="Photo Folder", subtype="DIR_PATH",
                               description="Photos without a COLMAP model: Reconstruct from Photos runs "

@@ -9,18 +9,13 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import RecGSError
+from ..core.options.train import RENDER_OPTIONS
 from .events import emit, fail, finite
 
 
 def add_render_arguments(p) -> None:
-    p.add_argument("model", type=Path, help="a 3DGS PLY")
-    p.add_argument("scene_dir", type=Path, help="survey whose cameras to render from")
-    p.add_argument("--out", type=Path, required=True, help="output folder (a PNG and a float EXR per view)")
-    p.add_argument("--names", default=None, help="comma-separated image names (default: all)")
-    p.add_argument("--downscale", type=int, default=1, help="render at the photo size divided by N")
-    p.add_argument("--images", default=None, help="compare against this image folder (default images/)")
-    p.add_argument("--eager", action="store_true",
-                   help="plain PyTorch rasterizer: neither numba's kernels nor torch.compile (slower)")
+    """The ``render`` options, from their one declaration (core/options/)."""
+    RENDER_OPTIONS.add_to(p)
 
 
 def run_render(args) -> int:

@@ -9,18 +9,16 @@ import time
 import warnings
 from pathlib import Path
 
+from ..core.options.scene import IMPORT_OPTIONS, INFO_OPTIONS
+
 
 def add_import_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene_dir", type=Path, help="survey folder holding images/ and a COLMAP model in sparse/0")
-    p.add_argument("--out", type=Path, required=True,
-                   help="output folder (scene.blend, point_cloud.ply, report.md, report.json)")
-    p.add_argument("--images", default="images", help="image folder inside the scene (default: images)")
-    p.add_argument("--sh-degree", type=int, default=0, choices=range(4),
-                   help="spherical-harmonic degree of the initial Gaussians (training raises it where it helps)")
+    """The ``import`` options, from their one declaration (core/options/scene.py)."""
+    IMPORT_OPTIONS.add_to(p)
 
 
 def add_info_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("ply", type=Path, help="a 3DGS PLY (INRIA layout)")
+    INFO_OPTIONS.add_to(p)
 
 
 def _blender_projection_error(bpy, cam_objs, points) -> dict:

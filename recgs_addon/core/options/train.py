@@ -7,6 +7,7 @@ from pathlib import Path
 from ..caustics.config import ESTIMATORS, MODE_INFO, CausticConfig
 from ..train.config import MEDIUM_MODES, TrainConfig
 from ..train.strategies import DEFAULT_STRATEGY, STRATEGIES
+from .scene import IMAGE_FOLDER, SCENE_DIR, render_options
 from .table import Option, OptionTable, Setting
 
 _CAUSTICS = "caustic removal"
@@ -22,7 +23,7 @@ _PRESETS = (("default", "Default", "Lean schedule: grows only what the scene nee
             ("vanilla", "Vanilla", "INRIA's 30k-iteration schedule, only to compare with it"))
 
 TRAIN_OPTIONS = OptionTable([
-    Option("scene_dir", "Folder with images/ and sparse/0", type=Path),
+    SCENE_DIR,
     Option("--out", "Output folder (checkpoint.pt, point_cloud.ply, metrics.json, the run's report)",
            type=Path, required=True),
     Option("--mode", "What the job trains", default="3dgs",
@@ -73,7 +74,7 @@ TRAIN_OPTIONS = OptionTable([
            setting=Setting("Device")),
     Option("--images", "Train on this image folder instead of images/: a name inside the scene (e.g. clean) or "
                        "a path; the same file names",
-           setting=Setting("Image Folder", default="images")),
+           setting=Setting("Image Folder", default=IMAGE_FOLDER)),
     Option("--holdout-every", "Hold out every Nth photo (by name, from the 5th) to score the model; 0 = none, "
                               "which also leaves no score to keep the best model by", type=int,
            default=TrainConfig.holdout_every, setting=Setting("Hold Out Every", minimum=0)),
@@ -134,3 +135,6 @@ TRAIN_OPTIONS = OptionTable([
     Option("--gain-restore", "recgs with trimming: rescale the colours to the photos' mean light at the end "
                              "(default on)", choices=("on", "off"), group=_CAUSTICS),
 ])
+
+#: ``render``'s options (its --eager is train's).
+RENDER_OPTIONS = render_options(TRAIN_OPTIONS["eager"])
