@@ -228,7 +228,7 @@ class RecGS(Estimates, Method):
     def _time_limited(self) -> bool:
         """The run was given a time limit: it uses all of it (a converged estimate keeps the
         model improving on the caustic-free targets; the kept model is chosen at the end)."""
-        return self.trainer.cfg.max_minutes is not None
+        return self.trainer.time_limit_s is not None
 
     def _stalled(self, entry: dict) -> bool:
         """The last round's C changed by more than ``stall_ratio`` of the round before (and more
@@ -247,9 +247,9 @@ class RecGS(Estimates, Method):
     def _warmup_time_up(self) -> bool:
         """With a time limit, the warm-up gets at most ``warmup_share`` of it (by default the
         estimator's :data:`WARMUP_SHARE`)."""
-        c, limit = self.ccfg, self.trainer.cfg.max_minutes
+        c, limit = self.ccfg, self.trainer.time_limit_s
         share = c.warmup_share if c.warmup_share is not None else WARMUP_SHARE.get(c.estimator, 0.5)
-        return limit is not None and self.trainer.schedule_elapsed() >= share * 60 * limit
+        return limit is not None and self.trainer.schedule_elapsed() >= share * limit
 
     # --- do no harm: the held-out check of the recurrences ------------------------------------
     def _harm(self, score: Optional[float], plain: Optional[float]) -> Optional[str]:

@@ -193,7 +193,7 @@ class EvaluationMixin:
                 self.plateau_step = self.step
             # with a time limit the run uses its time (the best model is kept, so steps that
             # do not help cost nothing); without one a plateau ends it
-            if c.max_minutes is None:
+            if self.time_limit_s is None:
                 self.done_reason = PLATEAU
 
     def _consider_best(self, score: float) -> None:

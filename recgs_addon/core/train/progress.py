@@ -30,13 +30,19 @@ class Progress:
 class ProgressMixin:
     """The trainer's clock and progress reports (see the module's docstring)."""
 
+    @property
+    def time_limit_s(self) -> Optional[float]:
+        """The run's time limit in seconds (None: none): the one place the config's minutes
+        are read."""
+        return None if self.cfg.max_minutes is None else 60.0 * self.cfg.max_minutes
+
     def finishing_reserve(self) -> float:
         """Seconds the time limit keeps for what follows training: ``finishing_renders()`` at the
         latest render time measured (a held-out evaluation measures it), at most a quarter of
         the limit. The whole job then ends near its limit, finishing included."""
-        if self._render_s is None or self.cfg.max_minutes is None:
+        if self._render_s is None or self.time_limit_s is None:
             return 0.0
-        return min(self.finishing_renders() * self._render_s, 15.0 * self.cfg.max_minutes)
+        return min(self.finishing_renders() * self._render_s, 0.25 * self.time_limit_s)
 
     def start_clock(self, origin: Optional[float] = None) -> None:
         """Count the run's time from ``origin`` (a ``time.perf_counter()`` reading, default now;
@@ -67,12 +73,12 @@ class ProgressMixin:
         if self.step:
             per = self.elapsed / self.step
             eta = per * (c.iterations - self.step)
-            if c.max_minutes is not None:
-                eta = min(eta, max(0.0, 60 * c.max_minutes - self.elapsed))
+            if self.time_limit_s is not None:
+                eta = min(eta, max(0.0, self.time_limit_s - self.elapsed))
         if eta is not None and self.elapsed + eta > 0:
             fraction = self.elapsed / (self.elapsed + eta)
-        elif c.max_minutes is not None:
-            fraction = self.elapsed / (60 * c.max_minutes)
+        elif self.time_limit_s is not None:
+            fraction = self.elapsed / self.time_limit_s
         else:
             fraction = 0.0
         phase = phase or self.phase

@@ -354,7 +354,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         while True:
             if self.step >= c.iterations:
                 self.done_reason = self.done_reason or "iteration limit"
-            if c.max_minutes is not None and self.elapsed >= 60 * c.max_minutes - self.finishing_reserve():
+            if self.time_limit_s is not None and self.elapsed >= self.time_limit_s - self.finishing_reserve():
                 self.done_reason = self.done_reason or "time limit"
             if self.done_reason:
                 return self.done_reason
