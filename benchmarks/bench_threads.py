@@ -4,7 +4,8 @@
         [--threads 1,2,4,8,16] [--steps 6] [--max-side 1280]
 
 Builds models of each size from the survey's sparse points (jittered copies, SH degree 3), and
-times full training steps on numba's path (the default on the CPU) at each thread count
+times full training steps on numba's path (the default on the CPU), with the allocator set as
+the train job sets it (``--system-malloc``: glibc's defaults), at each thread count
 (counts above the machine's cores are skipped), at the survey's training size (its photos
 capped at ``--max-side``; 1280x960 for a 4:3 survey scaled with benchmarks/scale_survey.py).
 Each part of the step is timed on its own: numba's cull, tile binning, projection forward and
@@ -27,6 +28,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from recgs_addon.commands.train import tune_allocator  # noqa: E402
 from recgs_addon.core.io.colmap import load_scene  # noqa: E402
 from recgs_addon.core.model.gaussians import init_from_points  # noqa: E402
 from recgs_addon.core.render import numba_kernels  # noqa: E402
@@ -107,10 +109,15 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", default="1,2,4,8,16")
     ap.add_argument("--steps", type=int, default=6)
     ap.add_argument("--max-side", type=int, default=1280)
+    ap.add_argument("--system-malloc", action="store_true",
+                    help="keep glibc's allocator defaults instead of the train job's (commands/train.tune_allocator)")
     args = ap.parse_args(argv)
     cores = os.cpu_count() or 1
     counts = [t for t in (int(x) for x in args.threads.split(",")) if t <= cores]
-    print(f"torch {torch.__version__}, {cores} cores; thread counts {counts}; numba path")
+    # the allocator as the train job sets it: with glibc's defaults each step's large buffers are
+    # fresh mappings, and faulting their pages in runs on one thread at a time
+    allocator = "system" if args.system_malloc else tune_allocator()
+    print(f"torch {torch.__version__}, {cores} cores; thread counts {counts}; numba path; allocator {allocator}")
     from recgs_addon.core.train import compiling
     if not compiling.numba_is_warm():
         print("warming numba's cache (once)", flush=True)
