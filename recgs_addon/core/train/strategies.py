@@ -11,7 +11,7 @@ A strategy's defaults are the default preset's (benchmarks/RESULTS.md#training-d
 budget may grow (``pixels_per_gaussian``, ``surface_pixels_per_gaussian``: trainer.auto_budget).
 The operations on the parameters and optimiser state are in :mod:`.density`; the trainer calls
 :meth:`Strategy.densify` on its densification steps and :meth:`Strategy.after_step` after
-every optimiser step.
+each optimiser step while the model is densifying.
 
 Nothing here imports torch until a strategy runs: the settings are read in Blender's own
 process (the sidebar, batch mode), which has no torch.
