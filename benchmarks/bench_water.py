@@ -1,6 +1,6 @@
 """Water benchmark: true colour under attenuation and backscatter, side by side.
 
-    .venv/bin/python benchmarks/bench_water.py --out out/bench [--minutes 5] [--only runs|decisions|step|identify]
+    .venv/bin/python benchmarks/bench_water.py --out out/bench [--minutes 5] [--only runs|decisions|step|identify|passes]
 
 * **runs**: on ``dive-water`` (green coastal water, ranges about 1.5-5 m, no caustics) plain 3DGS,
   3DGS with the water model, and the oracle (plain 3DGS on the true-colour images); on
@@ -19,6 +19,10 @@
   once and twice the generator's: its error shows how flat the fit is along the veil-rate
   trade-off; (3) the darkest pixels per range (Sea-thru's backscatter estimate) against the
   generator's veil at that range.
+
+* **passes**: RecGS with the water on ``dive-water-networks``, with and without the pass
+  estimator's water correction (each frame compared at its own range; without it, the frames'
+  colours as seen), side by side: what the correction adds on its own.
 
 Surveys come from benchmarks/bench_caustics.py (generated once into OUT/surveys).
 """
@@ -209,11 +213,51 @@ def identify(out: Path, survey: str = "dive-water", per_view: int = 3000, steps:
                           "over_generator_veil": np.round(dark / veil_at, 2).tolist()}), flush=True)
 
 
+#: Run by ``passes``: the train command with the pass estimator's water correction left out.
+_NO_PASS_WATER = """
+import sys
+from recgs_addon.core.caustics import passes
+for name in ("light_statistics", "pass_estimates", "pass_targets"):
+    def dry(*a, _f=getattr(passes, name), **k):
+        k["water"] = None
+        return _f(*a, **k)
+    setattr(passes, name, dry)
+from recgs_addon.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def pass_water(out: Path, minutes: float) -> None:
+    """See the module: ``--only passes``."""
+    import os
+    import subprocess
+
+    scene = survey_dir(out, "dive-water-networks")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
+    procs = {}
+    for name, head in (("corrected", ["-m", "recgs_addon"]), ("uncorrected", ["-c", _NO_PASS_WATER])):
+        dest = out / "water" / "passes" / name
+        cmd = [sys.executable, *head, "train", str(scene), "--out", str(dest), "--mode", "recgs",
+               "--estimator", "passes", "--medium", "auto", "--max-minutes", str(minutes)]
+        procs[name] = (subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                        env=env), dest)
+    for name, (proc, dest) in procs.items():
+        err = proc.communicate()[1]
+        if proc.returncode != 0:
+            raise SystemExit(f"{name} failed:\n{err[-2000:]}")
+        m = json.loads((dest / "metrics.json").read_text())
+        print(json.dumps({"run": name, "true_colour_held_out": m.get("psnr_test_gt"),
+                          "true_colour_photos": m.get("psnr_truecolour_gt"), "steps": m["iterations"],
+                          "gaussians": m["gaussians"], "estimator": m.get("estimator"),
+                          "passes": {k: v for k, v in (m.get("passes") or {}).items() if k != "share_per_frame"}}),
+              flush=True)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench")
     p.add_argument("--minutes", type=float, default=5.0)
-    p.add_argument("--only", choices=("runs", "decisions", "step", "identify"), default=None)
+    p.add_argument("--only", choices=("runs", "decisions", "step", "identify", "passes"), default=None)
     a = p.parse_args()
     if a.only in (None, "decisions"):
         decisions(a.out)
@@ -223,6 +267,8 @@ def main() -> int:
         identify(a.out)
     if a.only in (None, "runs"):
         runs(a.out, a.minutes)
+    if a.only in (None, "passes"):
+        pass_water(a.out, a.minutes)
     return 0
 
 
