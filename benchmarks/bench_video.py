@@ -3,6 +3,7 @@ step, the share of chosen frames registered, the camera-centre error after align
 ``--train-minutes N`` also RecGS training of the written survey.
 
     .venv/bin/python benchmarks/bench_video.py [--work out/bench_video] [--train-minutes N]
+    .venv/bin/python benchmarks/bench_video.py --soft [--keyframes out/bench/surveys/dive-networks]
 
 Goals (2 cores): frame choice + SfM under 10 minutes; >= 95 % of the chosen frames registered;
 every registered camera centre within 1 % of the survey's extent (the diagonal of the true
@@ -22,6 +23,12 @@ vertical), and the camera hovers for 3 s in the middle (one pose, sensor noise):
 report how many chosen frames are blurred or hover frames. Upscaled 640 x 360 renders hold
 less fine texture than a real 1080p camera, so SIFT finds fewer features than on real footage:
 the SfM time here is a lower bound. Keyframes and clip are kept in ``--work`` and reused.
+
+``--soft``: a clip like a small action camera's dive footage: soft detail (a 320 x 240 survey,
+``--keyframes``, default the caustic benchmark's ``dive-networks`` with its sharp moving light
+networks, blurred by 0.8 px and upscaled to 1280 x 960), low contrast (0.6 of the frame's), the
+diver's slow lawnmower over the same seabed at the survey's own pace (one keyframe every 0.33 s,
+48 s), no hover and no motion blur.
 """
 from __future__ import annotations
 
@@ -31,6 +38,7 @@ import math
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +56,22 @@ BLUR_EVERY = 5
 BLUR_PX = 3
 NOISE_LEVELS = 1.0
 GOAL_SECONDS = 600.0
+
+
+@dataclass(frozen=True)
+class Clip:
+    """How a clip is made from its keyframes (see the module)."""
+    name: str
+    seconds: float
+    size: tuple
+    hover_seconds: float
+    blur_every: int          # every Nth frame motion-blurred (0: none)
+    contrast: float = 1.0    # the frame's contrast about its mean, kept
+    soften_px: float = 0.0   # Gaussian blur (pixels at the keyframes' size) before upscaling
+
+
+SHARP = Clip("seabed_60s_1080p", CLIP_SECONDS, CLIP_SIZE, HOVER_SECONDS, BLUR_EVERY)
+SOFT = Clip("soft_8s_960p", 8.0, (1280, 960), 0.0, 0, contrast=0.6, soften_px=0.8)
 GOAL_REGISTERED = 0.95
 GOAL_CENTRE = 0.01
 
@@ -194,19 +218,19 @@ def fill_holes(img: np.ndarray, filled: np.ndarray, rounds: int = 6) -> np.ndarr
 
 # -- the clip -----------------------------------------------------------------------------------------
 
-def frame_poses(cams: list[dict]):
+def frame_poses(cams: list[dict], clip: Clip = SHARP):
     """Per clip frame: (R, t, centre, keyframe a, keyframe b, weight of b, hover?)."""
     n_keys = len(cams)
-    n_frames = int(CLIP_SECONDS * FPS)
-    moving = CLIP_SECONDS - HOVER_SECONDS
-    hover_start = CLIP_SECONDS / 2
+    n_frames = int(clip.seconds * FPS)
+    moving = clip.seconds - clip.hover_seconds
+    hover_start = clip.seconds / 2
     quats = [quat_of(np.array(c["R"])) for c in cams]
     centres = [np.array(c["center"]) for c in cams]
     out = []
     for f in range(n_frames):
         t = f / FPS
-        hover = hover_start <= t < hover_start + HOVER_SECONDS
-        tau = hover_start if hover else (t if t < hover_start else t - HOVER_SECONDS)
+        hover = hover_start <= t < hover_start + clip.hover_seconds
+        tau = hover_start if hover else (t if t < hover_start else t - clip.hover_seconds)
         s = min(tau / moving * (n_keys - 1), n_keys - 1 - 1e-9)
         a = int(s)
         alpha = s - a
@@ -216,18 +240,34 @@ def frame_poses(cams: list[dict]):
     return out
 
 
-def make_clip(work: Path, keys: Path) -> tuple[Path, dict]:
-    """The 60 s clip and its truth (per frame: centre, R, blurred, hover), made once."""
+def _soften(img: np.ndarray, sigma: float, contrast: float) -> np.ndarray:
+    """A frame blurred by a Gaussian of ``sigma`` pixels and its contrast about its mean scaled."""
+    x = img.astype(np.float32)
+    if sigma > 0:
+        r = int(math.ceil(3 * sigma))
+        k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+        k /= k.sum()
+        for axis in (0, 1):
+            pad = [(0, 0)] * 3
+            pad[axis] = (r, r)
+            xp = np.pad(x, pad, mode="edge")
+            x = sum(w * np.take(xp, np.arange(i, i + x.shape[axis]), axis=axis) for i, w in enumerate(k))
+    mean = x.mean(axis=(0, 1), keepdims=True)
+    return np.clip(mean + contrast * (x - mean) + 0.5, 0, 255).astype(np.uint8)
+
+
+def make_clip(work: Path, keys: Path, spec: Clip = SHARP) -> tuple[Path, dict]:
+    """The clip and its truth (per frame: centre, R, blurred, hover), made once."""
     import av
 
-    clip, truth_path = work / "seabed_60s_1080p.mp4", work / "seabed_60s_1080p.json"
+    clip, truth_path = work / f"{spec.name}.mp4", work / f"{spec.name}.json"
     meta = json.loads((keys / "survey.json").read_text())
     intr = meta["intrinsics"]
     K = np.array([[intr["fx"], 0, intr["cx"]], [0, intr["fy"], intr["cy"]], [0, 0, 1.0]])
     if clip.is_file() and truth_path.is_file():
         return clip, {**json.loads(truth_path.read_text()), "K": K.tolist()}
     cams = meta["cameras"]
-    poses = frame_poses(cams)
+    poses = frame_poses(cams, spec)
     rng = np.random.default_rng(0)
     cache: dict[int, Keyframe] = {}
     truth = {"frames": [], "fps": FPS, "keyframes": len(cams), "K": K.tolist()}
@@ -235,7 +275,7 @@ def make_clip(work: Path, keys: Path) -> tuple[Path, dict]:
     tmp = clip.with_suffix(".partial.mp4")
     with av.open(str(tmp), "w") as c:
         s = c.add_stream("libx264", rate=FPS)
-        s.width, s.height = CLIP_SIZE
+        s.width, s.height = spec.size
         s.pix_fmt = "yuv420p"
         s.options = {"crf": "18", "preset": "veryfast"}
         s.thread_count = 2
@@ -251,14 +291,16 @@ def make_clip(work: Path, keys: Path) -> tuple[Path, dict]:
             take = ~filled & filled2
             img[take] = img2[take]
             img = fill_holes(img, filled | filled2)
-            blurred = (f % BLUR_EVERY == BLUR_EVERY - 1) and not hover
+            if spec.soften_px or spec.contrast != 1.0:
+                img = _soften(img, spec.soften_px, spec.contrast)
+            blurred = bool(spec.blur_every) and (f % spec.blur_every == spec.blur_every - 1) and not hover
             if blurred:   # vertical motion blur: a box of BLUR_PX rows
                 acc = sum(np.roll(img.astype(np.float32), d, 0) for d in range(-(BLUR_PX // 2), BLUR_PX // 2 + 1))
                 img = np.clip(acc / BLUR_PX + 0.5, 0, 255).astype(np.uint8)
             if hover:
                 img = np.clip(img + rng.normal(0, NOISE_LEVELS, img.shape), 0, 255).astype(np.uint8)
             frame = av.VideoFrame.from_ndarray(img, format="rgb24").reformat(
-                width=CLIP_SIZE[0], height=CLIP_SIZE[1], format="yuv420p", interpolation="BICUBIC")
+                width=spec.size[0], height=spec.size[1], format="yuv420p", interpolation="BICUBIC")
             for packet in s.encode(frame):
                 c.mux(packet)
             truth["frames"].append({"center": C.tolist(), "R": R.tolist(), "blurred": blurred, "hover": hover})
@@ -368,11 +410,15 @@ def main(argv=None) -> int:
     p.add_argument("--work", type=Path, default=ROOT / "out" / "bench_video",
                    help="folder for the keyframes, the clip and the survey (reused)")
     p.add_argument("--train-minutes", type=float, default=None, help="also train the survey (RecGS) this long")
+    p.add_argument("--soft", action="store_true", help="the soft, low-contrast clip (see the module) instead")
+    p.add_argument("--keyframes", type=Path, default=ROOT / "out" / "bench" / "surveys" / "dive-networks",
+                   help="--soft: the survey (with depth/) the clip is made from")
     args = p.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
-    keys = keyframes(args.work)
-    clip, truth = make_clip(args.work, keys)
-    survey = args.work / "survey"
+    spec = SOFT if args.soft else SHARP
+    keys = args.keyframes if args.soft else keyframes(args.work)
+    clip, truth = make_clip(args.work, keys, spec)
+    survey = args.work / ("survey-soft" if args.soft else "survey")
     done, wall = run_import(clip, survey)
     m = measure(survey, truth)
     steps = done["step_seconds"]
@@ -380,12 +426,12 @@ def main(argv=None) -> int:
     share = m["registered"] / m["chosen"]
     print()
     print(f"# Import Video: {clip.name} ({len(truth['frames'])} frames, {FPS} fps, "
-          f"{CLIP_SIZE[0]}x{CLIP_SIZE[1]}; {truth['keyframes']} rendered keyframes)")
+          f"{spec.size[0]}x{spec.size[1]}; {truth['keyframes']} rendered keyframes)")
     print(f"frames chosen        {m['chosen']} of {done['frame_count']} (windows {m['stats']['windows']}, "
           f"near-duplicates {m['stats']['near_duplicates']}, dark {m['stats']['dark_windows']}); "
           f"written at {m['frame_size'][0]}x{m['frame_size'][1]}")
     print(f"  blurred among them {m['chosen_blurred']} (the clip: {m['blurred_in_clip']} of {len(truth['frames'])} "
-          f"frames blurred, {100 / BLUR_EVERY:.0f} %); from the 3 s hover: {m['chosen_hover']}")
+          f"frames blurred); from the {spec.hover_seconds:g} s hover: {m['chosen_hover']}")
     print(f"time                 frame choice {steps['frames']:.1f} s, features {steps['features']:.1f} s, "
           f"matching {steps['matching']:.1f} s, mapping {steps['mapping']:.1f} s; "
           f"total {steps['frames'] + sfm_s:.1f} s (command wall time {wall:.1f} s)")
