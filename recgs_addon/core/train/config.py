@@ -117,8 +117,7 @@ def preset(name: str, **overrides) -> TrainConfig:
     """``vanilla``: INRIA's schedule. ``default``: the lean schedule described in docs/dev/training.md.
     ``overrides`` may name the density control (``strategy``) and its settings by their names."""
     kind = overrides.pop("strategy", None) or DEFAULT_STRATEGY
-    make_strategy(kind)   # an unknown name is refused here
-    own = strategy_fields(kind)
+    own = strategy_fields(kind)   # an unknown name is refused here
     dens = make_strategy(kind, **{k: overrides.pop(k) for k in list(overrides) if k in own and overrides[k] is not None})
     others = {f.name for f in fields(TrainConfig)}
     stray = [k for k in overrides if k not in others and any(k in strategy_fields(n) for n in STRATEGIES)]

@@ -172,23 +172,28 @@ DEFAULT_STRATEGY = "adc"
 _RENAMED = {"densify_grad_threshold": "grad_threshold", "mcmc_draw": "draw"}
 
 
+def _strategy_class(name: str) -> type[Strategy]:
+    """The class of strategy ``name``; RecGSError for an unknown name."""
+    if name not in STRATEGIES:
+        raise RecGSError(f"unknown density strategy {name!r} (choose {' or '.join(STRATEGIES)})")
+    return STRATEGIES[name]
+
+
 def strategy_fields(name: str) -> set[str]:
-    """The settings strategy ``name`` takes."""
-    return {f.name for f in fields(STRATEGIES[name]) if f.init}
+    """The settings strategy ``name`` takes (unknown names refused)."""
+    return {f.name for f in fields(_strategy_class(name)) if f.init}
 
 
 def make_strategy(name: str = DEFAULT_STRATEGY, **settings) -> Strategy:
     """Strategy ``name`` with ``settings`` over its defaults (unknown names refused)."""
-    if name not in STRATEGIES:
-        raise RecGSError(f"unknown density strategy {name!r} (choose {' or '.join(STRATEGIES)})")
-    return STRATEGIES[name](**settings)
+    return _strategy_class(name)(**settings)
 
 
 def strategy_from_dict(d: dict) -> Strategy:
     """The strategy a checkpoint's config saved: ``{"name": ..., settings}``, or the flat keys of
     the config from before the strategies owned their settings (``strategy`` and its fields)."""
     name = d.get("name", d.get("strategy", DEFAULT_STRATEGY))
-    own = strategy_fields(name) if name in STRATEGIES else set()
+    own = strategy_fields(name)
     settings = {_RENAMED.get(k, k): v for k, v in d.items()}
     return make_strategy(name, **{k: v for k, v in settings.items() if k in own})
 
