@@ -29,6 +29,7 @@ def load():
 
     def kernels():
         from . import _numba_water
+        _STATE["tables"] = _numba_water.tables()   # the curves and exponentials, built once
         return _numba_water
     return load_module(_STATE, kernels, smoke)
 
@@ -52,8 +53,6 @@ class _See(torch.autograd.Function):
         out = np.empty_like(s)
         parts = np.empty((5,) + s.shape, np.float32)
         cuts = _cuts(s.shape[0])
-        if "tables" not in _STATE:
-            _STATE["tables"] = impl.tables()
         tabs = _STATE["tables"]
         run_ranges(lambda lo, hi: impl.forward(lo, hi, s, r, *coef, *tabs, out, parts), cuts)
         ctx.saved = (parts, cuts)
