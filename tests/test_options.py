@@ -10,8 +10,8 @@ import pytest
 from recgs_addon.cli import build_parser
 from recgs_addon.core.options.capture import SFM_OPTIONS, VIDEO_OPTIONS
 from recgs_addon.core.options.table import SAME, Option, OptionTable, Setting
-from recgs_addon.core.options.scene import IMPORT_OPTIONS, INFO_OPTIONS, SCENE_DIR
-from recgs_addon.core.options.train import RENDER_OPTIONS, TRAIN_OPTIONS
+from recgs_addon.core.options.scene import IMPORT_OPTIONS, INFO_OPTIONS, RENDER_OPTIONS, SCENE_DIR
+from recgs_addon.core.options.train import TRAIN_OPTIONS
 from recgs_addon.core.train.config import TrainConfig
 
 PKG = Path(__file__).resolve().parents[1] / "recgs_addon"

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import RecGSError
-from ..core.options.train import RENDER_OPTIONS
+from ..core.options.scene import RENDER_OPTIONS
 from .events import emit, fail, finite
 
 

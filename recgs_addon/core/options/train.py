@@ -7,7 +7,7 @@ from pathlib import Path
 from ..caustics.config import ESTIMATORS, MODE_INFO, CausticConfig
 from ..train.config import MEDIUM_MODES, TrainConfig
 from ..train.strategies import DEFAULT_STRATEGY, STRATEGIES
-from .scene import IMAGE_FOLDER, SCENE_DIR, render_options
+from .scene import EAGER, IMAGE_FOLDER, SCENE_DIR
 from .table import Option, OptionTable, Setting
 
 _CAUSTICS = "caustic removal"
@@ -85,9 +85,7 @@ TRAIN_OPTIONS = OptionTable([
            setting=Setting("Checkpoint Every", default=10.0, minimum=0.0, soft_max=600.0,
                            why="The sidebar checkpoints every 10 seconds: the viewport's live preview updates "
                                "with each checkpoint")),
-    Option("--eager", "Plain PyTorch rasterizer: neither numba's kernels nor torch.compile (about 2.5x slower "
-                      "steps; the reference the fast paths are tested against)", type=bool,
-           setting=Setting("Plain PyTorch", default=False)),
+    EAGER,
     Option("--compile-first", "Compile before the first step even on a cold cache (default: train eagerly while a "
                               "background process warms the cache, then switch)", type=bool),
     Option("--keep-last", "End with the last model, not the one that scored best on the held-out photos",
@@ -135,6 +133,3 @@ TRAIN_OPTIONS = OptionTable([
     Option("--gain-restore", "recgs with trimming: rescale the colours to the photos' mean light at the end "
                              "(default on)", choices=("on", "off"), group=_CAUSTICS),
 ])
-
-#: ``render``'s options (its --eager is train's).
-RENDER_OPTIONS = render_options(TRAIN_OPTIONS["eager"])
