@@ -47,6 +47,9 @@ ENGINE_DIR_ENV = "RECGS_ENGINE_DIR"
 MARKER = "recgs-engine.json"
 
 #: pip output lines that mean the network (not the request) failed.
+#: What an install takes on disk, in GB (torch CPU, numba, llvmlite, PyAV, and pip's unpacking).
+ENGINE_DISK_GB = 2
+
 _NETWORK_ERRORS = ("NewConnectionError", "Max retries exceeded", "Temporary failure in name resolution",
                    "Name or service not known", "Network is unreachable", "ConnectionError",
                    "ReadTimeoutError", "timed out", "SSLError", "ProxyError")
@@ -226,12 +229,17 @@ def parse_line(line: str, p: Progress) -> None:
         p.phase, p.package, p.fraction = "installing", "", 0.0
 
 
-def failure_message(returncode: int, lines: Sequence[str]) -> str:
-    """A message for the artist from pip's exit code and last lines."""
+def failure_message(returncode: int, lines: Sequence[str], folder: Optional[Path] = None) -> str:
+    """A message for the artist from pip's exit code and last lines (``folder``: where it went)."""
     text = "\n".join(lines)
     if any(k in text for k in _NETWORK_ERRORS):
         return ("The training engine could not be downloaded: the network failed (check the connection "
                 "or proxy, then try again)")
+    if "No space left on device" in text:
+        where = f" ({folder})" if folder else ""
+        return (f"The training engine needs about {ENGINE_DISK_GB} GB free on the disk of the RecGS "
+                f"user folder{where} and the temporary folder; free some space and try again, or "
+                "choose a Python with torch in the RecGS preferences")
     last = next((ln for ln in reversed(lines) if ln.startswith("ERROR")), lines[-1] if lines else "")
     return f"Installing the training engine failed (pip exit code {returncode}): {last}"
 
@@ -285,7 +293,7 @@ class Installer:
         while not self._lines.empty():
             parse_line(self._lines.get_nowait(), self.progress)
         if self.proc.returncode != 0:
-            self._fail(failure_message(self.proc.returncode, self.progress.lines))
+            self._fail(failure_message(self.proc.returncode, self.progress.lines, self.final.parent))
         else:
             self._finish()
         return self.status

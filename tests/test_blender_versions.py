@@ -105,9 +105,14 @@ def test_stock_blender_session(bpy_version, extension_zip, tmp_path):
     env.pop("RECGS_ENGINE_DIR", None)
     # The engine install uses pip's configured index; PyTorch's CPU index is not reachable here.
     env.setdefault("RECGS_ENGINE_PIP_ARGS", "")
-    res = subprocess.run([str(python), str(SCRIPT), str(extension_zip), str(ROOT / "data" / "sample"),
-                          str(tmp_path / "out"), *extra], env=env, capture_output=True, text=True,
-                         timeout=3000, cwd=tmp_path)
+    try:
+        res = subprocess.run([str(python), str(SCRIPT), str(extension_zip), str(ROOT / "data" / "sample"),
+                              str(tmp_path / "out"), *extra], env=env, capture_output=True, text=True,
+                             timeout=3000, cwd=tmp_path)
+    finally:
+        # The engine this session installed (torch, numba: ~1.5 GB) goes at once, so the
+        # versions' installs never sit on the disk together.
+        shutil.rmtree(tmp_path / "recgs-cache" / "engine", ignore_errors=True)
     steps = [json.loads(line[5:]) for line in res.stdout.splitlines() if line.startswith("STEP ")]
     fails = [line for line in res.stdout.splitlines() if line.startswith("FAIL ")]
     for s in steps:

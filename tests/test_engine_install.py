@@ -47,6 +47,9 @@ def test_success_swaps_in_and_the_worker_sees_it(tmp_path):
     ("ERROR: Could not find a version that satisfies the requirement torch==2.13.0", "Could not find"),
     ("WARNING: Retrying ... NewConnectionError: Failed to establish a new connection\n"
      "ERROR: Could not find a version", "network failed"),
+    ("Installing collected packages: numba, torch\n"
+     "ERROR: Could not install packages due to an OSError: [Errno 28] No space left on device",
+     "GB free on the disk"),
 ])
 def test_pip_failure_leaves_nothing(tmp_path, output, words):
     code = f"import sys; print('Collecting torch==2.13.0'); print({output!r}); sys.exit(1)"
