@@ -110,7 +110,7 @@ def test_stock_blender_session(bpy_version, extension_zip, tmp_path):
                               str(tmp_path / "out"), *extra], env=env, capture_output=True, text=True,
                              timeout=3000, cwd=tmp_path)
     finally:
-        # The engine this session installed (torch, numba: ~1.5 GB) goes at once, so the
+        # The engine this Blender run installed (torch, numba: ~1.5 GB) goes at once, so the
         # versions' installs never sit on the disk together.
         shutil.rmtree(tmp_path / "recgs-cache" / "engine", ignore_errors=True)
     steps = [json.loads(line[5:]) for line in res.stdout.splitlines() if line.startswith("STEP ")]
