@@ -38,7 +38,7 @@ import math
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -329,10 +329,10 @@ def umeyama(src: np.ndarray, dst: np.ndarray):
     return scale, R, mu_d - scale * R @ mu_s
 
 
-def run_import(clip: Path, survey: Path) -> tuple[dict, float]:
+def run_import(clip: Path, survey: Path, extra=()) -> tuple[dict, float]:
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, "-m", "recgs_addon", "video", str(clip), "--out", str(survey),
-                             "--overwrite"], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+                             "--overwrite", *extra], cwd=ROOT, stdout=subprocess.PIPE, text=True)
     last = {}
     for line in proc.stdout:
         ev = json.loads(line)
@@ -413,13 +413,18 @@ def main(argv=None) -> int:
     p.add_argument("--soft", action="store_true", help="the soft, low-contrast clip (see the module) instead")
     p.add_argument("--keyframes", type=Path, default=ROOT / "out" / "bench" / "surveys" / "dive-networks",
                    help="--soft: the survey (with depth/) the clip is made from")
+    p.add_argument("--seconds", type=float, default=None,
+                   help="--soft: the clip's length (the same path, slower: 48 s is the survey's own pace)")
+    p.add_argument("--video-args", default="", help="more arguments for the video command (e.g. '--step 0.2')")
     args = p.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     spec = SOFT if args.soft else SHARP
+    if args.soft and args.seconds:
+        spec = replace(SOFT, name=f"soft_{args.seconds:g}s_960p", seconds=args.seconds)
     keys = args.keyframes if args.soft else keyframes(args.work)
     clip, truth = make_clip(args.work, keys, spec)
-    survey = args.work / ("survey-soft" if args.soft else "survey")
-    done, wall = run_import(clip, survey)
+    survey = args.work / ("survey" if spec is SHARP else f"survey-{spec.name}")
+    done, wall = run_import(clip, survey, args.video_args.split())
     m = measure(survey, truth)
     steps = done["step_seconds"]
     sfm_s = steps["features"] + steps["matching"] + steps["mapping"]
@@ -428,7 +433,8 @@ def main(argv=None) -> int:
     print(f"# Import Video: {clip.name} ({len(truth['frames'])} frames, {FPS} fps, "
           f"{spec.size[0]}x{spec.size[1]}; {truth['keyframes']} rendered keyframes)")
     print(f"frames chosen        {m['chosen']} of {done['frame_count']} (windows {m['stats']['windows']}, "
-          f"near-duplicates {m['stats']['near_duplicates']}, dark {m['stats']['dark_windows']}); "
+          f"near-duplicates {m['stats']['near_duplicates']}, dark {m['stats']['dark_windows']}, "
+          f"thinned {m['stats'].get('thinned', 0)}; by {m['stats'].get('by', 'time')}); "
           f"written at {m['frame_size'][0]}x{m['frame_size'][1]}")
     print(f"  blurred among them {m['chosen_blurred']} (the clip: {m['blurred_in_clip']} of {len(truth['frames'])} "
           f"frames blurred); from the {spec.hover_seconds:g} s hover: {m['chosen_hover']}")

@@ -43,8 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "it again continues where it stopped."))
     capture.add_video_arguments(sub.add_parser(
         "video", help="video clip -> frames + COLMAP model (JSON-lines progress)",
-        description="A video clip into a survey: the sharpest frame of each window of time (near-duplicates and "
-                    "dark frames left out) into OUT/images with their time stamps in OUT/frames.json, then SfM "
+        description="A video clip into a survey: a sharp frame each time the view has moved a step of the image "
+                    "(near-duplicates and dark frames left out) into OUT/images with their time stamps in OUT/frames.json, then SfM "
                     "with sequential matching and one shared camera into OUT/sparse/0. Progress as JSON lines; "
                     "SIGTERM/SIGINT stop it, and running it again continues where it stopped."))
     return p

@@ -128,7 +128,7 @@ def test_sharpness_ranks_blur_and_flat_frames_below_detail():
 
 
 def test_window_count_is_capped_by_rate_and_frames():
-    assert fc.window_count(600.0, 18000) == fc.DEFAULT_FRAMES               # a 10-minute clip
+    assert fc.window_count(600.0, 18000) == fc.MAX_FRAMES                   # a 10-minute clip
     assert fc.window_count(10.0, 300) == 40                                 # 4 a second at most
     assert fc.window_count(10.0, 300, target=25) == 25
     assert fc.window_count(10.0, 300, every_s=0.5) == 20
@@ -156,6 +156,76 @@ def test_chooser_keeps_the_sharpest_of_each_window_and_skips_duplicates_and_dark
     assert [c.index for c in kept] == [1, 5, 13, 21]      # frame 1 of windows 0, 1, 3 and 5
     assert (chooser.stats.windows, chooser.stats.kept, chooser.stats.duplicates, chooser.stats.dark) == (6, 4, 1, 1)
     assert chooser.stats.dark_frames == 4 and chooser.stats.frames_seen == 24
+
+
+def _shifted(scene: np.ndarray, dx: int, dy: int, h: int = 96, w: int = 128) -> np.ndarray:
+    """A (h, w) view of ``scene`` with its corner at (dy, dx): a camera moved over a seabed (the
+    size of the thumbnails motion is measured on)."""
+    return scene[dy:dy + h, dx:dx + w]
+
+
+def test_image_shift_finds_the_motion_and_tells_unrelated_views():
+    rng = np.random.default_rng(3)
+    seabed = np.cumsum(np.cumsum(rng.normal(size=(300, 300)), 0), 1)     # smooth, like soft footage
+    seabed = (seabed - seabed.min()) / np.ptp(seabed)
+    a = _shifted(seabed, 40, 40)
+    for dx, dy in [(0, 0), (5, 0), (0, -7), (9, 6), (-25, 8)]:
+        sx, sy, peak = fc.image_shift(a, _shifted(seabed, 40 + dx, 40 + dy))
+        # the content moves the other way from the camera
+        assert (round(sx * 128), round(sy * 96)) == (-dx, -dy) and peak > fc.MOTION_LOST_PEAK
+    other = rng.random((96, 128))
+    assert fc.image_shift(a, other)[2] < fc.MOTION_LOST_PEAK
+    assert fc.image_shift(a, other[:40])[2] == 0.0                            # another size
+    assert fc.new_share(0.1, 0.0) == pytest.approx(0.1)
+    assert fc.new_share(-0.1, 0.2) == pytest.approx(1 - 0.9 * 0.8)
+    assert fc.new_share(1.5, 0.0) == 1.0
+
+
+def test_motion_windows_follow_the_camera_not_the_clock():
+    """A pass that speeds up gets frames closer in time, a hover gets none, a jump a new window."""
+    rng = np.random.default_rng(4)
+    seabed = rng.random((96, 4000)).astype(np.float32)
+    seabed = (seabed + np.roll(seabed, 1, 1) + np.roll(seabed, 2, 1)) / 3
+    x, t, frames = 0.0, 0.0, []
+    for speed, n in [(2.0, 60), (8.0, 60), (0.0, 30)]:     # px a frame (128 px wide views), 30 fps
+        for _ in range(n):
+            frames.append((t, int(x)))
+            x, t = x + speed, t + 1 / 30
+    chooser = fc.FrameChooser(fc.MotionWindows(step=0.12))
+    kept = []
+    for i, (t, x0) in enumerate(frames):
+        view = _shifted(seabed, x0, 0)
+        cand = fc.Candidate(index=i, time_s=t, sharpness=float(rng.random()), brightness=0.5,
+                            thumb=view[::4, ::4], motion=view)
+        kept += chooser.add(cand)
+    kept += chooser.close()
+    xs = np.array([frames[c.index][1] for c in kept])
+    gaps = np.diff(xs)
+    assert gaps.max() <= 2 * 0.12 * 128 + 1                 # never more than two steps apart
+    assert np.median(gaps) == pytest.approx(0.12 * 128, abs=5)
+    slow = [c for c in kept if c.index < 60]
+    fast = [c for c in kept if 60 <= c.index < 120]
+    assert len(fast) >= 3 * len(slow) > 0                   # 4x the speed: ~4x the frames a second
+    assert all(c.index < 122 for c in kept[:-1])            # the hover adds at most one more window
+    with pytest.raises(ValueError, match="share"):
+        fc.MotionWindows(step=1.5)
+
+
+def test_thin_keeps_an_even_selection():
+    assert fc.thin(5, 10) == [0, 1, 2, 3, 4]
+    assert fc.thin(10, 4) == [0, 3, 6, 9]
+    assert len(fc.thin(301, 300)) == 300 and fc.thin(301, 300)[-1] == 300
+
+
+def test_lost_ranges_name_the_stretches_not_registered():
+    from recgs_addon.core.capture.video import describe_ranges, lost_ranges
+
+    record = {"frames": [{"name": f"f{i}", "time_s": i / 2} for i in range(10)]}
+    runs = lost_ranges(record, {"f2", "f3", "f4", "f6", "f7"})
+    assert runs == [{"from_s": 0.0, "to_s": 0.5, "frames": 2}, {"from_s": 2.5, "to_s": 2.5, "frames": 1},
+                    {"from_s": 4.0, "to_s": 4.5, "frames": 2}]
+    assert describe_ranges(runs) == "0.0-0.5 s, 2.5 s, 4.0-4.5 s"
+    assert lost_ranges(record, {f"f{i}" for i in range(10)}) == []
 
 
 # -- the video command end to end ------------------------------------------------------------------
@@ -189,7 +259,8 @@ def test_video_command_chooses_sharp_distinct_frames(clip, imported):
         assert f["sharpness"] > 0
     stats = record["stats"]
     assert stats["kept"] == 24 and stats["windows"] == stats["kept"] + stats["near_duplicates"] + stats["dark_windows"]
-    assert stats["near_duplicates"] >= HOVER_FRAMES * 4 // FPS      # every window of the hover
+    # the hover's windows (one each MAX_WINDOW_S) after the first are near-duplicates
+    assert stats["by"] == "motion" and stats["near_duplicates"] >= int(HOVER_FRAMES / FPS / fc.MAX_WINDOW_S)
     from recgs_addon.core.io.images import image_size
     assert image_size(out / "images" / names[0]) == (256, 192)
     assert not list(out.glob(".*")), "temporary files left in the survey"
@@ -204,6 +275,9 @@ def test_video_command_solves_the_cameras(clip, imported):
     assert done["event"] == "done" and done["status"] == "done" and done["chosen"] == 24
     assert set(done["step_seconds"]) == {"frames", "features", "matching", "mapping"}
     assert done["registered"] >= 20, done                 # sequential matching over a 3-line lawnmower
+    # the stretches not registered, named by time: as many frames as were lost
+    assert sum(run["frames"] for run in done["lost"]) == done["chosen"] - done["registered"]
+    assert all(run["from_s"] <= run["to_s"] for run in done["lost"])
     true = pycolmap.Reconstruction(str(SAMPLE / "sparse" / "0"))
     true_by_name = {im.name: im for im in true.images.values()}
     record = json.loads((out / "frames.json").read_text())
@@ -333,7 +407,7 @@ def test_sfm_that_registers_too_few_frames(tmp_path):
 def _assert_clean_failure_sfm(r, events, path, out):
     assert r.returncode == 1 and events[-1]["event"] == "error", r.stderr[-2000:]
     assert str(path) in events[-1]["message"] and "structure from motion registered" in events[-1]["message"]
-    assert "--frames" in events[-1]["message"]
+    assert "--step" in events[-1]["message"]
     errors = [line for line in r.stderr.splitlines() if line.startswith("error: ")]
     assert errors == [r.stderr.strip().splitlines()[-1]] and "Traceback" not in r.stderr, r.stderr
     assert not (out / "sparse").exists()                     # no model, not even an empty folder
@@ -377,8 +451,26 @@ def test_import_video_operator_runs_the_job_and_imports(bpy_session, clip, tmp_p
     assert is_gaussian_object(obj) and len(obj.data.vertices) == job.last["done"]["points"]
     assert len([o for o in bpy.data.objects if o.type == "CAMERA"]) == job.last["done"]["registered"]
     assert "24 frames" in s.message
+    assert ("Not registered:" in s.message) == bool(job.last["done"]["lost"]), s.message
     with pytest.raises(RuntimeError, match="already"):
         bpy.ops.recgs.import_video()
+
+
+@pytest.mark.blender
+def test_the_panel_names_the_seconds_not_registered(bpy_session):
+    from types import SimpleNamespace
+
+    from recgs_addon.blender import job_follow
+
+    s = bpy_session.context.scene.recgs
+    video = SimpleNamespace(job=SimpleNamespace(kind="video"))
+    done = {"event": "done", "status": "done", "chosen": 40, "frame_count": 240, "registered": 37, "points": 900,
+            "lost": [{"from_s": 0.0, "to_s": 0.4, "frames": 2}, {"from_s": 7.5, "to_s": 7.5, "frames": 1}]}
+    job_follow._apply(video, s, done)
+    assert s.message.startswith("40 frames of 240 chosen, registered 37")
+    assert "Not registered: 0.0-0.4 s, 7.5 s of the clip" in s.message
+    job_follow._apply(video, s, {**done, "registered": 40, "lost": []})
+    assert "Not registered" not in s.message
 
 
 @pytest.mark.blender

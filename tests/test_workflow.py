@@ -402,7 +402,7 @@ def test_panel_draws_every_control(session):
     idle = snap.snapshot(bpy.context, running=False)
     for text in ("== RecGS ==", "== Scene ==", "== Training ==", "== Advanced (closed) ==", "== Output ==",
                  "== Preview (closed) ==", "Scene Folder:", "(recgs.import_colmap)", "(recgs.reconstruct)",
-                 "Video File:", "Frames: 180", "(recgs.import_video)", "Mode: 3DGS", "Time Limit (min):", "Budget:", "Downscale:", "Caustic Filter Size:",
+                 "Video File:", "Max Frames: 300", "(recgs.import_video)", "Mode: 3DGS", "Time Limit (min):", "Budget:", "Downscale:", "Caustic Filter Size:",
                  "(recgs.train)", "(recgs.resume)", "(recgs.export_ply)", "(recgs.export_images)",
                  "(recgs.open_report)", f"{name}: 200 Gaussians"):
         assert text in idle, text

@@ -16,6 +16,7 @@ from typing import Optional
 import bpy
 from bpy.app.handlers import persistent
 
+from ..core.capture.video import describe_ranges
 from ..core.errors import RecGSError
 from . import gaussian_object as gobj
 from . import jobs
@@ -146,6 +147,9 @@ def _apply(a: ActiveJob, s, ev: dict) -> None:
         elif kind == "done" and a.job.kind == "video":
             s.message = (f"{ev.get('chosen')} frames of {ev.get('frame_count')} chosen, registered "
                          f"{ev.get('registered')}, {ev.get('points')} points")
+            if ev.get("lost"):
+                s.message += (f". Not registered: {describe_ranges(ev['lost'])} of the clip; the survey lacks what "
+                              "only those frames saw (film it again slowly, or a smaller step on the command line)")
         elif kind == "done":
             s.message = (f"registered {ev.get('registered')}/{ev.get('images')} photos, "
                          f"{ev.get('points')} points")

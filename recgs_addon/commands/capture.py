@@ -119,19 +119,22 @@ def cmd_video(args) -> int:
                     + ("(PyAV: install the training engine, or pip install av==18.1.0)" if exc.name == "av"
                        else "(pip install pycolmap)"))
     from ..core.capture.sfm import SfmOptions, reconstruct
-    from ..core.capture.video import VideoOptions, existing_frames, import_frames, plan_windows, probe
+    from ..core.capture.video import (VideoOptions, describe_ranges, existing_frames, import_frames, lost_ranges,
+                                      plan_windows, probe)
 
-    if args.every is None and args.frames < 1:
+    if args.frames < 1:
         return fail(f"--frames must be at least 1, got {args.frames}")
     if args.every is not None and not (math.isfinite(args.every) and args.every > 0):
         return fail(f"--every must be a positive number of seconds, got {args.every}")
+    if not (math.isfinite(args.step) and 0 < args.step < 1):
+        return fail(f"--step is a share of the image, between 0 and 1, got {args.step}")
     if not 0.0 <= args.min_registered <= 1.0:
         return fail(f"--min-registered is a share of the frames, 0 to 1, got {args.min_registered}")
     for name, value, low, high in (("--quality", args.quality, 1, 100), ("--overlap", args.overlap, 1, 10 ** 6),
                                    ("--threads", args.threads, 1, 1024), ("--max-side", args.max_side, 0, 10 ** 6)):
         if not low <= value <= high:
             return fail(f"{name} must be {low} to {high}, got {value}")
-    options = VideoOptions(frames=args.frames, every_s=args.every, max_side=args.max_side,
+    options = VideoOptions(frames=args.frames, every_s=args.every, step=args.step, max_side=args.max_side,
                            image_format=args.format, jpeg_quality=args.quality, threads=args.threads)
     stop = StopSignals().install()
     if not args.verbose:
@@ -187,8 +190,9 @@ def cmd_video(args) -> int:
             result = reconstruct(survey / "images", model_dir, survey / "database.db", sfm_options, progress,
                                  resume=True, should_stop=stop)
         except SceneError as exc:
-            raise SceneError(f"{args.clip}: {exc}. Choose more frames (--frames, or a shorter --every), match "
-                             "more neighbours (--overlap), or film slower with more overlap") from exc
+            raise SceneError(f"{args.clip}: {exc}. Choose frames closer together (a smaller --step, or a "
+                             "shorter --every), match more neighbours (--overlap), or film slower with more "
+                             "overlap") from exc
     except Cancelled:
         emit("done", status="cancelled", reason=f"received {stop.received}", survey=str(survey))
         print(f"stopped by {stop.received}; run the same command again to continue", file=sys.stderr)
@@ -200,8 +204,15 @@ def cmd_video(args) -> int:
     finally:
         stop.restore()
     seconds = {"frames": round(t_frames, 2), **result.summary()["step_seconds"]}
+    registered = {im.name for im in result.reconstruction.images.values() if im.has_pose}
+    lost = lost_ranges(record, registered)
     emit("done", status="done", survey=str(survey), chosen=chosen, frame_count=record["frame_count"],
-         **{**result.summary(), "step_seconds": seconds, "seconds": round(time.perf_counter() - t0, 2)})
+         lost=lost, **{**result.summary(), "step_seconds": seconds, "seconds": round(time.perf_counter() - t0, 2)})
     print(f"{chosen} frames of {record['frame_count']} chosen, {result.registered} registered, "
           f"{result.points} points; survey in {survey}", file=sys.stderr)
+    if lost:
+        print(f"not registered: {describe_ranges(lost)} of the clip ({chosen - result.registered} frames): the "
+              "survey lacks the seabed seen only there. Import again with --overwrite and frames closer "
+              "together (a smaller --step) or more neighbours matched (--overlap), or film that part "
+              "again more slowly", file=sys.stderr)
     return 0

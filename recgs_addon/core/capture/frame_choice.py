@@ -1,15 +1,21 @@
 """Which frames of a video clip become the survey's photos (numpy only; the decoding is in video.py).
 
-The clip is cut into equal windows of time; in each window the sharpest frame (the variance
-of the Laplacian of its grey image, :func:`sharpness`) is the candidate, and it is kept unless
-it is a near-duplicate of the frame kept last (the mean absolute difference of small grey
-thumbnails, :func:`thumbnail`, below :data:`DUPLICATE_MAD`: a camera that hovers), or too dark
-to hold anything (lights off, a lens cap). :class:`FrameChooser` does this on a stream of
-frames, holding only each window's best frame so far, so a clip is decoded once.
+The clip is cut into windows; in each window the sharpest frame (the variance of the Laplacian
+of its grey image, :func:`sharpness`) is the candidate, and it is kept unless it is a
+near-duplicate of the frame kept last (the mean absolute difference of small grey thumbnails,
+:func:`thumbnail`, below :data:`DUPLICATE_MAD`: a camera that hovers), or too dark to hold
+anything (lights off, a lens cap). :class:`FrameChooser` does this on a stream of frames,
+holding only each window's best frame so far, so a clip is decoded once.
 
-How many windows (:func:`window_count`): a target count (:data:`DEFAULT_FRAMES`) or a fixed
-spacing in seconds, never more than :data:`MAX_FRAMES_PER_SECOND` of clip nor more than the
-clip's frames.
+Where the windows fall. By default by how far the view has moved (:class:`MotionWindows`): a
+window ends once the image has moved :data:`MOTION_STEP` of itself from the window's first
+frame (:func:`image_shift`, phase correlation of grey thumbnails), or once it no longer
+matches that frame at all (the camera turned, or jumped), or after :data:`MAX_WINDOW_S`
+seconds (a camera that hovers). A fast pass thus gets many frames a second and a slow one
+few, and consecutive frames always overlap by about the same share, which is what
+structure from motion needs. If that gives more than the most frames asked for
+(:data:`MAX_FRAMES`), :func:`thin` keeps an even selection. With a fixed spacing in seconds
+instead (:class:`TimeWindows`, :func:`window_count`), windows are equal spans of time.
 """
 from __future__ import annotations
 
@@ -19,14 +25,31 @@ from typing import Any, Optional
 
 import numpy as np
 
-#: Frames a clip is cut into by default. A diver or small ROV films the seabed from 1-3 m at
-#: 0.3-0.5 m/s, so a few minutes of footage cover the survey in a few passes; ~180 frames then
-#: lie ~10 % of the image's height apart along a pass, which gives a point about 8 views in one
-#: pass (the median of >= 8 views a point that SfM and caustic removal want), while sequential
-#: matching and mapping stay within minutes on 2 cores. A spacing in seconds replaces it.
-DEFAULT_FRAMES = 180
-#: At most this many frames per second of clip: at 30 fps each window then holds >= 7 frames to
-#: choose the sharpest from, and frames closer in time add little parallax.
+#: Most frames a clip gives by default. A diver or small ROV films the seabed from 1-3 m at
+#: 0.3-0.5 m/s; at one frame per :data:`MOTION_STEP` of the image, a minute of footage gives
+#: ~100-200 frames, and 300 keep sequential matching and mapping within ~10 minutes on 2 cores.
+MAX_FRAMES = 300
+#: A window ends once the view has moved this share of the image from its first frame (the
+#: share of the image that is new: 1 - (1 - |dx|)(1 - |dy|) for a shift of dx, dy of the
+#: image's width and height). The sharpest frame of each window is kept, so consecutive kept
+#: frames lie ~0.08 and at most ~0.16 of the image apart: a seabed point stays in ~12 of them
+#: along a pass, the views SfM and caustic removal want. Measured (``benchmarks/bench_video.py
+#: --soft``): 4 frames a second put the soft clip's frames 0.7 of the image apart and registered
+#: 17 of 32. On 64 stills 0.12-0.16 apart shown 3 frames each (the test survey ``data/dive``),
+#: a step of 0.12 merged close stills and registered 49 of 53; 0.1 and 0.08, all.
+MOTION_STEP = 0.08
+#: Phase correlation's peak (0-1) below which two thumbnails are taken not to show the same
+#: seabed: between unrelated frames of the benchmark clips it is 0.05 (at most 0.074); between
+#: frames 0.1 of the image apart, 0.25-0.6.
+MOTION_LOST_PEAK = 0.08
+#: Long side of the grey thumbnails the motion is measured on (px): a shift of 1 px is 0.8 %
+#: of the image, and one correlation costs ~0.1 ms.
+MOTION_SIDE = 128
+#: A window never spans more than this many seconds (a camera that hovers gives a frame this
+#: often, dropped as a near-duplicate while nothing changes).
+MAX_WINDOW_S = 2.0
+#: With a fixed spacing in seconds: at most this many frames per second of clip unless the
+#: spacing asks for more (at 30 fps each window then holds >= 7 frames to choose from).
 MAX_FRAMES_PER_SECOND = 4.0
 #: Fewest distinct frames a survey is made of: a point needs several views for SfM, and caustic
 #: removal compares ~8 views of it.
@@ -74,12 +97,11 @@ def thumbnail(grey: np.ndarray, side: int = THUMB_SIDE) -> np.ndarray:
     return sums / np.outer(np.diff(rows), np.diff(cols)).astype(np.float32) / 255.0
 
 
-def window_count(duration_s: float, frames: int, target: Optional[int] = DEFAULT_FRAMES,
+def window_count(duration_s: float, frames: int, target: Optional[int] = MAX_FRAMES,
                  every_s: Optional[float] = None) -> int:
-    """How many windows a clip of ``duration_s`` seconds and ``frames`` frames is cut into:
-    ``duration_s / every_s`` when a spacing is given, else ``target``; never more than
-    :data:`MAX_FRAMES_PER_SECOND` per second (unless a spacing asks for it) nor more than
-    ``frames``."""
+    """How many equal windows of time a clip of ``duration_s`` seconds and ``frames`` frames is
+    cut into: ``duration_s / every_s`` when a spacing is given, else ``target``, never more
+    than :data:`MAX_FRAMES_PER_SECOND` per second; never more than ``frames``."""
     if every_s is not None:
         if every_s <= 0:
             raise ValueError(f"the spacing between frames must be positive, got {every_s} s")
@@ -89,6 +111,99 @@ def window_count(duration_s: float, frames: int, target: Optional[int] = DEFAULT
             raise ValueError(f"the number of frames must be at least 1, got {target}")
         n = min(int(target), int(math.floor(duration_s * MAX_FRAMES_PER_SECOND + 1e-9)))
     return max(1, min(n, int(frames)))
+
+
+def new_share(dx: float, dy: float) -> float:
+    """Share of an image that is new after a shift of ``dx``, ``dy`` (shares of its width and
+    height): 1 - (1 - |dx|)(1 - |dy|), 1 beyond a whole image."""
+    return 1.0 - max(0.0, 1.0 - abs(dx)) * max(0.0, 1.0 - abs(dy))
+
+
+class ShiftReference:
+    """One grey thumbnail's spectrum, against which others' shifts are measured
+    (:meth:`shift`): phase correlation with a Hann window (Kuglin and Hines 1975)."""
+
+    def __init__(self, thumb: np.ndarray):
+        self.shape = thumb.shape
+        self._window = np.outer(np.hanning(thumb.shape[0]), np.hanning(thumb.shape[1])).astype(np.float32)
+        self._spec = self._spectrum(thumb)
+
+    def _spectrum(self, thumb: np.ndarray) -> np.ndarray:
+        t = np.asarray(thumb, np.float32)
+        return np.fft.rfft2((t - t.mean()) * self._window)
+
+    def shift(self, thumb: np.ndarray) -> tuple[float, float, float]:
+        """(dx, dy, peak): how far ``thumb``'s content lies from the reference's, in shares of
+        the width and height (within half of each), and the correlation peak (1: the same
+        image moved; ~0.05: unrelated images). Another size gives (1, 1, 0)."""
+        if np.shape(thumb) != self.shape:
+            return 1.0, 1.0, 0.0
+        cross = np.conj(self._spec) * self._spectrum(thumb)
+        cross /= np.abs(cross) + 1e-12
+        corr = np.fft.irfft2(cross, s=self.shape)
+        iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
+        h, w = self.shape
+        dy, dx = (iy - h if iy > h // 2 else iy), (ix - w if ix > w // 2 else ix)
+        return dx / w, dy / h, float(corr[iy, ix])
+
+
+def image_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
+    """(dx, dy, peak) of thumbnail ``b`` against ``a`` (:meth:`ShiftReference.shift`)."""
+    return ShiftReference(a).shift(b)
+
+
+class TimeWindows:
+    """Windows of time: ``bounds`` (n + 1,) are their edges in seconds; a frame at time t
+    belongs to window ``i`` with ``bounds[i] <= t < bounds[i + 1]`` (the last also takes
+    ``t == bounds[-1]`` and anything later)."""
+
+    def __init__(self, bounds: np.ndarray):
+        self.bounds = np.asarray(bounds, np.float64)
+        self._window = -1
+
+    def window_of(self, time_s: float) -> int:
+        i = int(np.searchsorted(self.bounds, time_s, side="right")) - 1
+        return min(max(i, 0), len(self.bounds) - 2)
+
+    def starts_window(self, cand: "Candidate") -> bool:
+        """Whether ``cand`` (the next frame, in time order) opens a new window."""
+        w = self.window_of(cand.time_s)
+        new, self._window = w != self._window, w
+        return new
+
+
+class MotionWindows:
+    """Windows by how far the view has moved (see the module): a frame opens a new window when
+    its :attr:`Candidate.motion` thumbnail has moved ``step`` of the image from the window's
+    first frame, no longer matches it (peak below ``lost_peak``), or lies ``max_s`` seconds
+    after it. Dark frames are given to it too; they move nothing."""
+
+    def __init__(self, step: float = MOTION_STEP, lost_peak: float = MOTION_LOST_PEAK,
+                 max_s: float = MAX_WINDOW_S):
+        if not 0.0 < step < 1.0:
+            raise ValueError(f"the step between frames must be a share of the image between 0 and 1, got {step}")
+        self.step, self.lost_peak, self.max_s = step, lost_peak, max_s
+        self._ref: Optional[ShiftReference] = None
+        self._t0 = 0.0
+
+    def starts_window(self, cand: "Candidate") -> bool:
+        if self._ref is not None and cand.time_s - self._t0 < self.max_s:
+            dx, dy, peak = self._ref.shift(cand.motion)
+            if peak >= self.lost_peak and new_share(dx, dy) < self.step:
+                return False
+        self._ref, self._t0 = ShiftReference(cand.motion), cand.time_s
+        return True
+
+
+def thin(count: int, most: int) -> list[int]:
+    """Which of ``count`` kept frames (indices, ascending) to keep when at most ``most`` may
+    stay: an even selection, the first and last included. Kept frames lie about a motion step
+    apart, so even in number is about even along the camera's path."""
+    if count <= most:
+        return list(range(count))
+    if most <= 1:
+        return [0][:max(most, 0)]
+    return sorted({int(round(i)) for i in np.linspace(0, count - 1, most)})
 
 
 @dataclass
@@ -102,6 +217,7 @@ class Candidate:
     brightness: float          #: mean grey level, 0-1
     thumb: np.ndarray          #: :func:`thumbnail`
     payload: Any = None
+    motion: Optional[np.ndarray] = None   #: :func:`thumbnail` at :data:`MOTION_SIDE` (motion windows)
 
 
 @dataclass
@@ -117,35 +233,30 @@ class ChoiceStats:
 class FrameChooser:
     """Chooses frames from a stream, one window at a time.
 
-    ``bounds`` (n + 1,) are the windows' edges in seconds; a frame at time t belongs to the
-    window ``i`` with ``bounds[i] <= t < bounds[i + 1]`` (the last window also takes
-    ``t == bounds[-1]`` and anything later). Feed every frame in time order to :meth:`add`;
-    it returns the candidates kept by the windows that closed; :meth:`close` ends the last
-    one.
+    ``windows`` says where windows start: :class:`TimeWindows`, :class:`MotionWindows`, or an
+    array of time edges (a :class:`TimeWindows`). Feed every frame in time order to
+    :meth:`add`; it returns the candidates kept by the windows that closed; :meth:`close`
+    ends the last one.
     """
 
-    def __init__(self, bounds: np.ndarray, duplicate_mad: float = DUPLICATE_MAD,
-                 dark_level: float = DARK_LEVEL):
-        self.bounds = np.asarray(bounds, np.float64)
+    def __init__(self, windows, duplicate_mad: float = DUPLICATE_MAD, dark_level: float = DARK_LEVEL):
+        self.windows = windows if hasattr(windows, "starts_window") else TimeWindows(windows)
         self.duplicate_mad = duplicate_mad
         self.dark_level = dark_level
         self.stats = ChoiceStats()
-        self._window = -1
+        self._open = False
         self._best: Optional[Candidate] = None
         self._last_kept: Optional[Candidate] = None
 
-    def window_of(self, time_s: float) -> int:
-        i = int(np.searchsorted(self.bounds, time_s, side="right")) - 1
-        return min(max(i, 0), len(self.bounds) - 2)
-
     def add(self, cand: Candidate) -> list[Candidate]:
         kept = []
-        w = self.window_of(cand.time_s)
-        if w != self._window:
+        dark = cand.brightness < self.dark_level
+        moving = isinstance(self.windows, MotionWindows)
+        if not (dark and moving) and self.windows.starts_window(cand):
             kept += self._close_window()
-            self._window = w
+            self._open = True
         self.stats.frames_seen += 1
-        if cand.brightness < self.dark_level:
+        if dark:
             self.stats.dark_frames += 1
             return kept
         if self._best is None or cand.sharpness > self._best.sharpness:
@@ -156,7 +267,7 @@ class FrameChooser:
         return self._close_window()
 
     def _close_window(self) -> list[Candidate]:
-        if self._window < 0:
+        if not self._open:
             return []
         self.stats.windows += 1
         best, self._best = self._best, None

@@ -53,10 +53,13 @@ NAME_DIGITS = 6
 class VideoOptions:
     """How frames are chosen and written."""
 
-    #: Target number of frames (:data:`~.frame_choice.DEFAULT_FRAMES`), or, when ``every_s`` is
-    #: set, one frame every ``every_s`` seconds instead.
-    frames: int = fc.DEFAULT_FRAMES
+    #: At most this many frames (:data:`~.frame_choice.MAX_FRAMES`); with ``every_s``, about
+    #: this many, one every ``every_s`` seconds instead of by motion.
+    frames: int = fc.MAX_FRAMES
     every_s: Optional[float] = None
+    #: A new frame each time the view has moved this share of the image
+    #: (:data:`~.frame_choice.MOTION_STEP`; not used with ``every_s``).
+    step: float = fc.MOTION_STEP
     #: Long side of the written images at most (px; 0: the clip's own size).
     max_side: int = DEFAULT_MAX_SIDE
     image_format: str = "jpg"
@@ -68,7 +71,12 @@ class VideoOptions:
 
     def settings(self) -> dict:
         """What the frame choice depends on (a rerun reuses frames only when these match)."""
-        return {k: v for k, v in asdict(self).items() if k != "threads"}
+        return {k: v for k, v in asdict(self).items() if k != "threads" and not (k == "step" and self.every_s)}
+
+    @property
+    def by_motion(self) -> bool:
+        """Windows by how far the view moved (the default), not by a spacing in seconds."""
+        return self.every_s is None
 
 
 @dataclass
@@ -223,24 +231,51 @@ def existing_frames(survey: str | Path, clip: str | Path, options: VideoOptions)
     return record
 
 
-def plan_windows(info: ClipInfo, options: "VideoOptions") -> int:
-    """How many windows a clip is cut into (:func:`~.frame_choice.window_count`); VideoError
-    naming the clip when that gives too few frames for a survey."""
+def plan_windows(info: ClipInfo, options: "VideoOptions"):
+    """Where the clip's windows fall (:class:`~.frame_choice.MotionWindows`, or with a spacing in
+    seconds :class:`~.frame_choice.TimeWindows`); VideoError naming the clip when the clip or the
+    settings give too few frames for a survey."""
     o, clip = options, info.path
     if info.frames and info.frames < fc.MIN_FRAMES:
         raise VideoError(f"{clip}: only {info.frames} frame(s) ({info.duration_s:.2f} s); a survey needs at least "
                          f"{fc.MIN_FRAMES} distinct views: use a longer clip")
+    if o.frames < fc.MIN_FRAMES:
+        raise VideoError(f"{clip}: a survey needs at least {fc.MIN_FRAMES} distinct frames, but {o.frames} "
+                         "were asked for at most")
+    if o.by_motion:
+        if not 0.0 < o.step < 1.0:
+            raise VideoError(f"the step between frames is a share of the image, between 0 and 1 "
+                             f"({fc.MOTION_STEP:g} by default), got {o.step}")
+        return fc.MotionWindows(o.step)
     n_windows = fc.window_count(info.duration_s, info.frames or 10 ** 9, o.frames, o.every_s)
     if n_windows < fc.MIN_FRAMES:
-        if o.every_s is not None:
-            why = f"one frame every {o.every_s:g} s of its {info.duration_s:.1f} s gives {n_windows}; choose a shorter spacing"
-        elif o.frames < fc.MIN_FRAMES:
-            why = f"{o.frames} were asked for"
-        else:
-            why = (f"its {info.duration_s:.2f} s give {n_windows} at most ({fc.MAX_FRAMES_PER_SECOND:g} a second); "
-                   "use a longer clip")
+        why = f"one frame every {o.every_s:g} s of its {info.duration_s:.1f} s gives {n_windows}; choose a shorter spacing"
         raise VideoError(f"{clip}: a survey needs at least {fc.MIN_FRAMES} distinct frames, but {why}")
-    return n_windows
+    return fc.TimeWindows(np.linspace(0.0, info.duration_s, n_windows + 1))
+
+
+def lost_ranges(record: dict, registered: set) -> list[dict]:
+    """The stretches of the clip whose chosen frames structure from motion did not register:
+    runs of consecutive unregistered frames of ``record`` (what frames.json holds), each
+    ``{"from_s", "to_s", "frames"}`` (the first and last such frame's time)."""
+    runs: list[dict] = []
+    last = None
+    for i, f in enumerate(record["frames"]):
+        if f["name"] in registered:
+            continue
+        if last is not None and last == i - 1:
+            runs[-1]["to_s"], runs[-1]["frames"] = f["time_s"], runs[-1]["frames"] + 1
+        else:
+            runs.append({"from_s": f["time_s"], "to_s": f["time_s"], "frames": 1})
+        last = i
+    return runs
+
+
+def describe_ranges(runs: list[dict]) -> str:
+    """``0.0-1.2 s, 6.4 s`` for :func:`lost_ranges`' runs (the first five, then a count)."""
+    parts = [f"{r['from_s']:.1f} s" if r["to_s"] == r["from_s"] else f"{r['from_s']:.1f}-{r['to_s']:.1f} s"
+             for r in runs[:5]]
+    return ", ".join(parts) + (f" and {len(runs) - 5} more" if len(runs) > 5 else "")
 
 
 def import_frames(clip: str | Path, survey: str | Path, options: Optional[VideoOptions] = None,
@@ -263,14 +298,14 @@ def import_frames(clip: str | Path, survey: str | Path, options: Optional[VideoO
     report = on_progress or (lambda decoded, total, kept: None)
     stop = should_stop or (lambda: False)
     info = probe(clip)
-    n_windows = plan_windows(info, o)
+    windows = plan_windows(info, o)
     created = not survey.exists()
     make_folder(survey, "survey folder")
     staging = survey / ".images.partial"
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir()
     try:
-        record = _decode_and_write(av, info, staging, o, n_windows, report, stop)
+        record = _decode_and_write(av, info, staging, o, windows, report, stop)
         record["source"] = str(clip.resolve())
         images = survey / "images"
         if images.exists():
@@ -285,16 +320,14 @@ def import_frames(clip: str | Path, survey: str | Path, options: Optional[VideoO
     return record
 
 
-def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, n_windows: int,
-                      report, stop) -> dict:
+def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, windows, report, stop) -> dict:
     container, stream = _open(info.path)
     stream.thread_type = "AUTO"
     stream.thread_count = max(1, o.threads)
     digits = max(NAME_DIGITS, len(str(info.frames)))
     turns = 0    # quarter turns counter-clockwise that display the frames upright (phones' portrait clips)
     aw, ah = analysis_size(info.width, info.height)
-    bounds = np.linspace(0.0, info.duration_s, n_windows + 1)
-    chooser = fc.FrameChooser(bounds, o.duplicate_mad, o.dark_level)
+    chooser = fc.FrameChooser(windows, o.duplicate_mad, o.dark_level)
     written: list[dict] = []
     out_size = None
     t_report = time.monotonic()
@@ -326,7 +359,8 @@ def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, n_windo
                 grey = frame.reformat(width=aw, height=ah, format="gray").to_ndarray().astype(np.float32)
                 level = float(grey.mean()) / 255.0
                 brightness.append(level)
-                cand = fc.Candidate(index, t - t_first, fc.sharpness(grey), level, fc.thumbnail(grey), frame)
+                cand = fc.Candidate(index, t - t_first, fc.sharpness(grey), level, fc.thumbnail(grey), frame,
+                                    fc.thumbnail(grey, fc.MOTION_SIDE) if o.by_motion else None)
                 for kept in chooser.add(cand):
                     write(kept)
                 index += 1
@@ -353,10 +387,17 @@ def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, n_windo
         raise VideoError(f"{info.path}: only {len(written)} distinct frame(s) ({s.duplicates} near-duplicates of the "
                          f"frame before, {s.dark} windows too dark); a survey needs at least {fc.MIN_FRAMES}: "
                          "use a clip in which the camera moves over the scene")
+    keep = fc.thin(len(written), o.frames) if o.by_motion else list(range(len(written)))
+    thinned = len(written) - len(keep)
+    if thinned:
+        for i in sorted(set(range(len(written))) - set(keep)):
+            (folder / written[i]["name"]).unlink()
+        written = [written[i] for i in keep]
     fps = info.fps or (index / info.duration_s if info.duration_s else 0.0)
     return {"source": str(info.path), "fps": round(fps, 4), "duration_s": round(info.duration_s, 4),
             "frame_count": index, "codec": info.codec, "source_size": [info.width, info.height],
             "size": out_size, "settings": o.settings(),
             "stats": {"windows": s.windows, "kept": s.kept, "near_duplicates": s.duplicates,
-                      "dark_windows": s.dark, "dark_frames": s.dark_frames},
+                      "dark_windows": s.dark, "dark_frames": s.dark_frames, "thinned": thinned,
+                      "by": "motion" if o.by_motion else "time"},
             "frames": written}

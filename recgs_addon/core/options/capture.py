@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..capture.frame_choice import DEFAULT_FRAMES, MIN_FRAMES
+from ..capture.frame_choice import MAX_FRAMES, MIN_FRAMES
 from ..capture.sfm import SfmOptions
 from ..capture.video import DEFAULT_MAX_SIDE, IMAGE_FORMATS, JPEG_QUALITY, VideoOptions
 from .table import Option, OptionTable, Setting
@@ -28,11 +28,16 @@ SFM_OPTIONS = OptionTable([
 VIDEO_OPTIONS = OptionTable([
     Option("clip", "Video file (MP4, MOV, MKV, ...)", type=Path),
     Option("--out", "Survey folder to write (images/, frames.json, sparse/0)", type=Path, required=True),
-    Option("--frames", "About this many frames of the clip, at most 4 a second of it", type=int,
-           default=DEFAULT_FRAMES, exclusive="spacing", setting=Setting("Frames", minimum=MIN_FRAMES, soft_max=1000)),
-    Option("--every", "One frame every this many seconds instead of a count", type=float, metavar="SECONDS",
-           exclusive="spacing",
-           setting=Setting("Every", default=0.0, minimum=0.0, soft_max=10.0, why="0 = use Frames")),
+    Option("--frames", "At most this many frames; where the camera's motion gives more, an even "
+                       "selection of them", type=int,
+           default=MAX_FRAMES, setting=Setting("Max Frames", minimum=MIN_FRAMES, soft_max=1000)),
+    Option("--step", "A new frame each time the view has moved this share of the image (more frames "
+                     "where the camera moves fast or turns, fewer where it is slow)", type=float,
+           default=VideoOptions.step, metavar="SHARE", exclusive="spacing"),
+    Option("--every", "One frame every this many seconds instead of by the camera's motion", type=float,
+           metavar="SECONDS", exclusive="spacing",
+           setting=Setting("Every", default=0.0, minimum=0.0, soft_max=10.0,
+                           why="0 = by the camera's motion, up to Max Frames")),
     Option("--max-side", "Long side of the written frames at most this many pixels (0: the clip's own size)",
            type=int, default=DEFAULT_MAX_SIDE, setting=Setting("Max Frame Side", minimum=0, soft_max=8192)),
     Option("--format", "Image format of the frames", default=VideoOptions.image_format, choices=IMAGE_FORMATS),
