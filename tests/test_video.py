@@ -211,6 +211,21 @@ def test_motion_windows_follow_the_camera_not_the_clock():
         fc.MotionWindows(step=1.5)
 
 
+def test_a_window_that_starts_on_a_frame_matching_nothing_is_not_kept_alone():
+    """A motion-blurred frame matches its neighbours poorly: it opens a window, but the sharp
+    frame after it joins that window and is the one kept."""
+    rng = np.random.default_rng(5)
+    seabed = rng.random((96, 1000)).astype(np.float32)
+    chooser = fc.FrameChooser(fc.MotionWindows())
+    views = [rng.random((96, 128)).astype(np.float32)] + [_shifted(seabed, 2 * i, 0) for i in range(1, 6)]
+    kept = []
+    for i, view in enumerate(views):
+        kept += chooser.add(fc.Candidate(index=i, time_s=i / 30, sharpness=1.0 if i == 0 else 10.0 - i,
+                                         brightness=0.5, thumb=view[::4, ::4], motion=view))
+    kept += chooser.close()
+    assert 0 not in [c.index for c in kept] and kept[0].index == 1
+
+
 def test_thin_keeps_an_even_selection():
     assert fc.thin(5, 10) == [0, 1, 2, 3, 4]
     assert fc.thin(10, 4) == [0, 3, 6, 9]

@@ -178,8 +178,10 @@ class TimeWindows:
 class MotionWindows:
     """Windows by how far the view has moved (see the module): a frame opens a new window when
     its :attr:`Candidate.motion` thumbnail has moved ``step`` of the image from the window's
-    first frame, no longer matches it (peak below ``lost_peak``), or lies ``max_s`` seconds
-    after it. Dark frames are given to it too; they move nothing."""
+    first frame, no longer matches it (peak below ``lost_peak``) while the window holds two
+    frames or more, or lies ``max_s`` seconds after it. A window of one frame stays open when
+    only the match fails: a motion-blurred first frame matches its sharp neighbours poorly, and
+    would otherwise be kept alone. Dark frames are not given to it."""
 
     def __init__(self, step: float = MOTION_STEP, lost_peak: float = MOTION_LOST_PEAK,
                  max_s: float = MAX_WINDOW_S):
@@ -188,13 +190,15 @@ class MotionWindows:
         self.step, self.lost_peak, self.max_s = step, lost_peak, max_s
         self._ref: Optional[ShiftReference] = None
         self._t0 = 0.0
+        self._frames = 0
 
     def starts_window(self, cand: "Candidate") -> bool:
         if self._ref is not None and cand.time_s - self._t0 < self.max_s:
             dx, dy, peak = self._ref.shift(cand.motion)
-            if peak >= self.lost_peak and new_share(dx, dy) < self.step:
+            if self._frames < 2 if peak < self.lost_peak else new_share(dx, dy) < self.step:
+                self._frames += 1
                 return False
-        self._ref, self._t0 = ShiftReference(cand.motion), cand.time_s
+        self._ref, self._t0, self._frames = ShiftReference(cand.motion), cand.time_s, 1
         return True
 
 
