@@ -160,6 +160,9 @@ class TimeWindows:
     belongs to window ``i`` with ``bounds[i] <= t < bounds[i + 1]`` (the last also takes
     ``t == bounds[-1]`` and anything later)."""
 
+    #: Dark frames are given to it: a window of only dark frames is counted as one.
+    sees_dark_frames = True
+
     def __init__(self, bounds: np.ndarray):
         self.bounds = np.asarray(bounds, np.float64)
         self._window = -1
@@ -183,10 +186,14 @@ class MotionWindows:
     only the match fails: a motion-blurred first frame matches its sharp neighbours poorly, and
     would otherwise be kept alone. Dark frames are not given to it."""
 
+    #: Dark frames move nothing: they are not given to it.
+    sees_dark_frames = False
+
     def __init__(self, step: float = MOTION_STEP, lost_peak: float = MOTION_LOST_PEAK,
                  max_s: float = MAX_WINDOW_S):
         if not 0.0 < step < 1.0:
-            raise ValueError(f"the step between frames must be a share of the image between 0 and 1, got {step}")
+            raise ValueError(f"the step between frames is a share of the image, between 0 and 1 "
+                             f"({MOTION_STEP:g} by default), got {step}")
         self.step, self.lost_peak, self.max_s = step, lost_peak, max_s
         self._ref: Optional[ShiftReference] = None
         self._t0 = 0.0
@@ -258,8 +265,7 @@ class FrameChooser:
     def add(self, cand: Candidate) -> list[Candidate]:
         kept = []
         dark = cand.brightness < self.dark_level
-        moving = isinstance(self.windows, MotionWindows)
-        if not (dark and moving) and self.windows.starts_window(cand):
+        if (self.windows.sees_dark_frames or not dark) and self.windows.starts_window(cand):
             kept += self._close_window()
             self._open = True
         self.stats.frames_seen += 1

@@ -243,10 +243,10 @@ def plan_windows(info: ClipInfo, options: "VideoOptions"):
         raise VideoError(f"{clip}: a survey needs at least {fc.MIN_FRAMES} distinct frames, but {o.frames} "
                          "were asked for at most")
     if o.by_motion:
-        if not 0.0 < o.step < 1.0:
-            raise VideoError(f"the step between frames is a share of the image, between 0 and 1 "
-                             f"({fc.MOTION_STEP:g} by default), got {o.step}")
-        return fc.MotionWindows(o.step)
+        try:
+            return fc.MotionWindows(o.step)
+        except ValueError as exc:
+            raise VideoError(f"{clip}: {exc}") from exc
     n_windows = fc.window_count(info.duration_s, info.frames or 10 ** 9, o.frames, o.every_s)
     if n_windows < fc.MIN_FRAMES:
         why = f"one frame every {o.every_s:g} s of its {info.duration_s:.1f} s gives {n_windows}; choose a shorter spacing"
