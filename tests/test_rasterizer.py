@@ -26,6 +26,7 @@ from reference_render import reference_render  # noqa: E402
 
 from recgs_addon.core.render import kernels, numba_path, rasterizer  # noqa: E402
 from recgs_addon.core.model.cameras import quat_to_rotmat  # noqa: E402
+from recgs_addon.core.model.gaussians import SH_C0  # noqa: E402
 from recgs_addon.core.render.rasterizer import render  # noqa: E402
 
 PARAM_NAMES = ("means", "log_scales", "quats", "logit_opacities", "sh")
@@ -865,3 +866,60 @@ def test_numba_cull_reads_nothing_of_a_culled_row(monkeypatch):
     np.testing.assert_array_equal(radii2, radii)
     assert (radii2[~drawn] == 0).all() and (radii2[drawn] > 0).all()
     np.testing.assert_array_equal(ids2, ids)
+
+
+# ------------------------------------------------------------------------------ blending weights
+
+def _weights_of(scene, dtype, **kw):
+    """(render output, params, weights) of a render whose backward filled ``weights``."""
+    n = len(scene["params"][0])
+    w = torch.zeros(n, dtype=torch.float64)
+    out, params = run(scene, dtype, requires_grad=True, weights=w, **kw)
+    weighted_loss(out.rgb, out.alpha, out.depth, loss_weights(scene)).backward()
+    return out, params, w
+
+
+def test_blending_weights_match_float64_finite_differences():
+    """A Gaussian's weight in a view is the pixels it supplies, sum_p alpha_i T_i: the
+    derivative of the summed image wrt its (unclamped) colour, taken here by central
+    differences of the float64 reference renderer, dense stacks (stops) included."""
+    scene = make_scene(5, n=40, deg=0, logit=(1.5, 1.5))
+    scene["params"][4][:, 0, :] = np.abs(scene["params"][4][:, 0, :]) + 0.2   # colour > 0: no clamp
+    out, _, w = _weights_of(scene, torch.float64)
+    h = 1e-4
+    fd = np.zeros(len(w))
+    for i in range(len(w)):
+        sums = []
+        for sign in (1, -1):
+            sh = scene["params"][4].copy()
+            sh[i, 0, 0] += sign * h
+            s = dict(scene, params=scene["params"][:4] + [sh])
+            sums.append(run_reference(s)["rgb"][..., 0].sum())
+        fd[i] = (sums[0] - sums[1]) / (2 * h * SH_C0)
+    assert (fd > 1.0).sum() >= 5 and fd.min() < 0.05   # carried and nearly hidden ones both
+    np.testing.assert_allclose(w.numpy(), fd, rtol=1e-6, atol=1e-7)
+    assert (w[out.radii == 0] == 0).all()
+
+
+@pytest.mark.parametrize("compiled", [False, pytest.param("numba", marks=needs_numba)])
+def test_blending_weights_leave_the_gradients_alone(compiled):
+    """Asking for the weights changes no output and no gradient, bit for bit."""
+    scene = make_scene(11, n=120, width=48, height=36, logit=(2.0, 2.0))
+    a, pa = render_and_backward(scene, torch.float32, compiled=compiled)
+    b, pb, w = _weights_of(scene, torch.float32, compiled=compiled)
+    assert torch.equal(a.rgb, b.rgb) and float(w.sum()) > 0
+    for x, y in zip([a.means2d.grad] + [p.grad for p in pa], [b.means2d.grad] + [p.grad for p in pb]):
+        assert torch.equal(x, y)
+
+
+@needs_numba
+@pytest.mark.parametrize("seed, logit", [(3, (0.5, 1.5)), (8, (3.0, 2.0))])
+def test_numba_blending_weights_match_eager(seed, logit):
+    """numba's weights (a sum in its backward) against the eager path's, float32 inputs,
+    with the clamp and the stop firing on the dense scene; their sum is the image's alpha."""
+    scene = make_scene(seed, n=300, width=64, height=48, logit=logit)
+    a, _, wa = _weights_of(scene, torch.float32, compiled=False)
+    b, _, wb = _weights_of(scene, torch.float32, compiled="numba")
+    assert (wa - wb).abs().max() <= 1e-5 * wa.abs().max()
+    alpha = float(b.alpha.detach().sum())
+    assert abs(float(wb.sum()) - alpha) <= 1e-4 * alpha

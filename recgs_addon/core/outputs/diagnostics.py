@@ -1,10 +1,9 @@
 """Where the caustics go: per Gaussian, how many training views carry it.
 
 A Gaussian's blending weight in a view is ``sum over pixels of alpha_i T_i`` (in pixels): the
-share of the view's colour it supplies. It is read off the gradient of the render's sum
-with respect to the Gaussian's DC colour coefficient, which is ``SH_C0 * sum alpha_i T_i`` per
-channel (colour = 0.5 + SH is linear in it, clamped only where it would go negative). A
-Gaussian "carries" a view where that weight is at least ``min_weight`` pixels. A Gaussian
+share of the view's colour it supplies, which the rasterizer's backward adds up
+(``render(..., weights=...)``; training's density control reads the same). A Gaussian
+"carries" a view where that weight is at least ``min_weight`` pixels. A Gaussian
 carried by few views has its colour fitted to the light of those few photos: with moving
 caustics, to their caustics (docs/method.md).
 """
@@ -13,7 +12,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..model.gaussians import SH_C0
 from ..render.rasterizer import render
 from ..train.data import view_tensors
 
@@ -33,13 +31,15 @@ def blending_weights(trainer, index: int, max_side: int = SUPPORT_SIDE) -> torch
     area = (w * h) / (cam.width * cam.height)   # training pixels per rendered pixel
     viewmat, K = view_tensors(cam, trainer.device)
     p = {n: v.detach() for n, v in trainer.params.items()}
-    dc = p["sh_dc"].clone().requires_grad_(True)
+    dc = p["sh_dc"].clone().requires_grad_(True)   # something for the backward to reach
     k = p["sh_rest"].shape[1] if trainer.sh_degree else 0
+    weights = torch.zeros(dc.shape[0], dtype=torch.float32, device=dc.device)
     out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (dc, p["sh_rest"][:, :k]),
                  viewmat, K, cam.width, cam.height, sh_degree=trainer.sh_degree,
-                 compiled=trainer.compiler.compiled())   # the training's own path (numba's: 2.5x eager)
+                 compiled=trainer.compiler.compiled(),   # the training's own path (numba's: 2.5x eager)
+                 weights=weights)
     out.rgb.sum().backward()
-    return dc.grad[:, 0, :].mean(-1) * (area / SH_C0)
+    return weights * area
 
 
 def view_support(trainer, min_weight: float = 1.0) -> np.ndarray:

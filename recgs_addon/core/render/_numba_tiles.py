@@ -138,7 +138,8 @@ def composite_backward(t_lo, t_hi, tile_start, rows, pos, geo, vals, ts, tiles_x
                        out, last, g_out, d_isect):
     """Gradients of the intersections of tiles t_lo..t_hi-1, ``d_isect`` (11, M): wrt the centre x, y (pixels),
     l11, l21, l22, opacity and the 5 values, from ``g_out`` (C, Hp, Wp), the gradient wrt
-    ``out``. Replays each pixel's front-to-back pass with the forward's own operations (so it
+    ``out``; with a twelfth row, also each intersection's blending weight (the sum of its
+    ``alpha T`` over the tile's pixels: its share of the pixels, no gradient). Replays each pixel's front-to-back pass with the forward's own operations (so it
     sees the forward's alphas, skips and transmittances bit for bit, up to ``last``) and uses
     ``dC/dalpha_i = v_i T_i - (sum_{k>i} v_k alpha_k T_k) / (1 - alpha_i)``, the sum behind
     being <g_out, out> less the running sum in front (as the eager kernels: total - cumsum)."""
@@ -152,6 +153,7 @@ def composite_backward(t_lo, t_hi, tile_start, rows, pos, geo, vals, ts, tiles_x
     T = np.empty(n_p, np.float32)
     done = np.empty(n_p, np.float32)
     gv = np.empty(n_p, np.float32)
+    with_weight = d_isect.shape[0] > 11
     for t in range(t_lo, t_hi):
         s0 = tile_start[t]
         s1 = tile_start[t + 1]
@@ -191,6 +193,7 @@ def composite_backward(t_lo, t_hi, tile_start, rows, pos, geo, vals, ts, tiles_x
             # sums over the tile's pixels: geometry (a0..a5) and the 5 values (c0..c4)
             a0 = a1 = a2 = a3 = a4 = a5 = F32(0.0)
             c0 = c1 = c2 = c3 = c4 = F32(0.0)
+            ws = F32(0.0)
             for p in range(n_p):
                 dx = pxl[p] - mx
                 dy = pyl[p] - my
@@ -222,6 +225,7 @@ def composite_backward(t_lo, t_hi, tile_start, rows, pos, geo, vals, ts, tiles_x
                 c2 = _radd(c2, w * G[2, p])
                 c3 = _radd(c3, w * G[3, p])
                 c4 = _radd(c4, w * G[4, p])
+                ws = _radd(ws, w)
                 T[p] = t_p * om if valid else t_p
             d_isect[0, k] = F32(-2.0) * l11 * a0                  # centre x (dx = px - mx)
             d_isect[1, k] = F32(-2.0) * (l21 * a0 + l22 * a1)    # centre y
@@ -234,6 +238,8 @@ def composite_backward(t_lo, t_hi, tile_start, rows, pos, geo, vals, ts, tiles_x
             d_isect[8, k] = c2
             d_isect[9, k] = c3
             d_isect[10, k] = c4
+            if with_weight:
+                d_isect[11, k] = ws
         for k in range(s0 + n_k, s1):                # behind every pixel's stop
             for f in range(d_isect.shape[0]):
                 d_isect[f, k] = F32(0.0)

@@ -107,3 +107,12 @@ def _chunk_backward(pxl, pyl, geo, vals, g, t_excl, g_out, fused: bool = False):
     else:
         d_vals = torch.bmm(w, g_out.permute(1, 2, 0)).permute(2, 0, 1)
     return d_geo, d_vals
+
+
+def _chunk_weights(geo, g, t_excl, inside):
+    """(Tc, G) blending weight of each slot of one chunk: its ``alpha T`` summed over the tile's
+    pixels inside the image (``inside`` (Tc, P), 1 or 0), with the forward's own alphas and
+    stop, from the forward state (g, t_excl)."""
+    alpha = torch.clamp_max(geo[5].unsqueeze(2) * g, ALPHA_MAX)
+    valid = (alpha >= ALPHA_MIN) & (t_excl * (1.0 - alpha) >= T_MIN)
+    return (torch.where(valid, alpha * t_excl, torch.zeros_like(alpha)) * inside.unsqueeze(1)).sum(2)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 
+from .chunks import _chunk_weights
 from .tiles import _N_GEOM, _pixel_offsets, _slot_tables, _slot_tables_compiled
 
 
@@ -74,11 +75,16 @@ class _Composite(torch.autograd.Function):
         g_pad[:plan.height, :plan.width] = g_img
         g_tiles = g_pad.view(plan.tiles_y, ts, plan.tiles_x, ts, n_c).permute(4, 0, 2, 1, 3)
         g_tiles = g_tiles.reshape(n_c, plan.tiles_y * plan.tiles_x, ts * ts)
+        if plan.weights is not None:   # (tiles, P): pixels inside the image, not its padding
+            inside = torch.zeros(hp, wp, dtype=dtype, device=dev)
+            inside[:plan.height, :plan.width] = 1.0
+            inside = inside.view(plan.tiles_y, ts, plan.tiles_x, ts).permute(0, 2, 1, 3)
+            inside = inside.reshape(plan.tiles_y * plan.tiles_x, ts * ts)
         pxl, pyl = _pixel_offsets(ts, dtype, dev)
         n_vis = ctx.n_vis
         n_slots = geo.shape[1]
         # Per-slot gradients, planar: rows 0..5 geometry, 6.. values.
-        d_slot = torch.empty(_N_GEOM + n_c, n_slots, dtype=dtype, device=dev)
+        d_slot = torch.empty(_N_GEOM + n_c + int(plan.weights is not None), n_slots, dtype=dtype, device=dev)
         for k, (tiles, tc, g, off) in enumerate(plan.chunks):
             geo_c = geo[:, off:off + tc * g].view(_N_GEOM, tc, g)
             vals_c = vals[:, off:off + tc * g].view(n_c, tc, g)
@@ -89,12 +95,16 @@ class _Composite(torch.autograd.Function):
             dg, dv = kern.backward(pxl, pyl, geo_c, vals_c, fall, t_excl,
                                    g_tiles.index_select(1, tiles))
             d_slot[:_N_GEOM, off:off + tc * g] = dg.reshape(_N_GEOM, -1)
-            d_slot[_N_GEOM:, off:off + tc * g] = dv.reshape(n_c, -1)
+            d_slot[_N_GEOM:_N_GEOM + n_c, off:off + tc * g] = dv.reshape(n_c, -1)
+            if plan.weights is not None:
+                d_slot[-1, off:off + tc * g] = _chunk_weights(geo_c, fall, t_excl, inside.index_select(0, tiles)).reshape(-1)
         ctx.state = None
-        d_rows = torch.zeros(_N_GEOM + n_c, n_vis + 1, dtype=dtype, device=dev)
+        d_rows = torch.zeros(d_slot.shape[0], n_vis + 1, dtype=dtype, device=dev)
         d_rows.index_add_(1, plan.slot_rows, d_slot)
         d_rows = d_rows[:, :n_vis]
+        if plan.weights is not None:
+            plan.weights.index_add_(0, ids, d_rows[-1].to(plan.weights.dtype))
         d_means2d = torch.zeros(ctx.n, 2, dtype=dtype, device=dev)
         d_means2d.index_copy_(0, ids, d_rows[0:2].t())
-        return (d_means2d, d_rows[2:5].t(), d_rows[5], d_rows[_N_GEOM:].t(),
+        return (d_means2d, d_rows[2:5].t(), d_rows[5], d_rows[_N_GEOM:_N_GEOM + n_c].t(),
                 None, None, None, None, None)

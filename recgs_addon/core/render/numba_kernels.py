@@ -161,12 +161,13 @@ class NumbaKernels:
         return out, last
 
     def backward(self, tile_start, rows, pos, geo, vals, tile_size: int, tiles_x: int, out, last,
-                 g_out):
+                 g_out, weights: bool = False):
         """-> d_rows (6 + C, V): per visible Gaussian, gradients wrt centre x, y, l11, l21, l22,
-        opacity and the C = 5 values, from ``g_out`` (C, Hp, Wp)."""
+        opacity and the C = 5 values, from ``g_out`` (C, Hp, Wp); with ``weights``, a last row
+        (7 + C, V) holds each visible Gaussian's blending weight in the view (pixels)."""
         if vals.shape[1] != 5:
             raise ValueError("the numba backward takes 5 values a Gaussian (rgb, depth, 1)")
-        n_f = 6 + vals.shape[1]
+        n_f = 6 + vals.shape[1] + int(weights)
         d_isect = np.empty((n_f, rows.shape[0]), np.float32)
         run_ranges(lambda lo, hi: self.impl.composite_backward(
             lo, hi, tile_start, rows, pos, geo, vals, tile_size, tiles_x, *self.consts, out, last,

@@ -77,9 +77,16 @@ class _CompositeNumba(torch.autograd.Function):
         ts = plan.tile_size
         g_out = np.zeros(out.shape, np.float32)
         g_out[:, :plan.height, :plan.width] = g_img.detach().permute(2, 0, 1).numpy()
+        # the padding beyond the image has no gradient: its pixels' passes are not replayed
+        # (the same gradients, and no blending weight counted outside the image)
+        last[plan.height:] = 0
+        last[:, plan.width:] = 0
         d = torch.from_numpy(ctx.nk.backward(tile_start, rows, pos, geo, vals, ts, plan.tiles_x,
-                                             out, last, g_out))
+                                             out, last, g_out, weights=plan.weights is not None))
         ctx.arrays = None
+        if plan.weights is not None:
+            plan.weights.index_add_(0, ids, d[-1].to(plan.weights.dtype))
+            d = d[:-1]
         d_means2d = torch.zeros(ctx.n, 2, dtype=torch.float32)
         d_means2d.index_copy_(0, ids, d[0:2].t())
         return d_means2d, d[2:_N_GEOM].t(), d[_N_GEOM:].t(), None, None, None, None

@@ -135,7 +135,7 @@ def get_kernels(compiled: Optional[bool]) -> _Kernels:
 
 def _render_numba(nk, means, log_scales, quats, logit_opacities, blocks, viewmat, K, width: int,
                   height: int, sh_degree: int, background, antialiased: bool, near: float,
-                  tile_size: int, gather) -> RenderOutput:
+                  tile_size: int, gather, weights) -> RenderOutput:
     """:func:`render` with every per-Gaussian and per-pair step in numba (float32 inputs):
     culling, depth order and binning without autograd, then two differentiable kernels,
     projection + colour and compositing. Same outputs as the eager path to float32 rounding
@@ -154,6 +154,7 @@ def _render_numba(nk, means, log_scales, quats, logit_opacities, blocks, viewmat
     plan.tile_start, plan.isect_rows = torch.from_numpy(tile_start), torch.from_numpy(rows)
     plan.intersections = int(rows.shape[0])
     plan.pairs = plan.intersections * ts * ts
+    plan.weights = weights
 
     sh_vis = torch.cat([gather(b, ids) for b in blocks if b.shape[1]], 1).to(torch.float32)
     campos = camera_centre(torch.from_numpy(vm)).numpy()
@@ -183,7 +184,7 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
            background: Optional[torch.Tensor] = None, antialiased: bool = False,
            near: float = DEFAULT_NEAR, tile_size: int = DEFAULT_TILE_SIZE,
            compiled: Optional[bool] = None, chunk_pairs: int = DEFAULT_CHUNK_PAIRS,
-           low_memory: bool = False, gather=None) -> RenderOutput:
+           low_memory: bool = False, gather=None, weights: Optional[torch.Tensor] = None) -> RenderOutput:
     """Render 3D Gaussians into one pinhole view, differentiably (INRIA 3DGS maths, CPU).
 
     Args:
@@ -216,6 +217,10 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
         gather: ``gather(x, ids)`` reads rows ``ids`` (the visible Gaussians) of a
             per-Gaussian input; default ``x.index_select(0, ids)``. A trainer passes a
             :class:`recgs_addon.core.render.rowgrads.RowGrads` so that gradients stay row-sparse.
+        weights: optional (N,) tensor into which ``backward()`` adds each Gaussian's blending
+            weight in this view, ``sum over pixels of alpha_i T_i`` (the pixels' worth of the
+            image it supplies; 0 where culled), at no extra pass: the significance density
+            control reads. Filled only when the render's backward runs.
 
     The dtype of ``means`` (float32 or float64) sets the compositing precision; the
     per-Gaussian projection is always float64. Gradients reach every input through
@@ -240,7 +245,7 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
         try:
             return _render_numba(kern.numba, means, log_scales, quats, logit_opacities, blocks,
                                  viewmat, K, width, height, sh_degree, background, antialiased,
-                                 near, tile_size, gather)
+                                 near, tile_size, gather, weights)
         except Exception as exc:  # noqa: BLE001 - numba failing here: eager from now on
             from . import numba_kernels
             numba_kernels.disable(exc)
@@ -264,6 +269,7 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
         means2d.retain_grad()
 
     plan = _build_plan(proj, width, height, tile_size, chunk_pairs, kern.compiled)
+    plan.weights = weights
     acc = _Composite.apply(means2d, proj.chol.to(dtype), proj.opacity.to(dtype), values,
                            proj.means2d.detach(), ids, plan, kern, low_memory)
     alpha = acc[..., 4]

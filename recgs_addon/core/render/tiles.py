@@ -44,6 +44,8 @@ class _Plan:
     #: visible row of each (M,) int32, and each tile's offset into them (n_tiles + 1,) int64
     isect_rows: Optional[torch.Tensor] = None
     tile_start: Optional[torch.Tensor] = None
+    #: (N,) where the backward adds each Gaussian's blending weight in the view (pixels), if asked
+    weights: Optional[torch.Tensor] = None
 
 
 def _expand(counts: torch.Tensor):
