@@ -1,7 +1,7 @@
 """How a training step scales with cores, part by part.
 
     .venv/bin/python benchmarks/bench_threads.py SCENE_DIR [--gaussians 50000,500000]
-        [--threads 1,2,4,8,16] [--steps 6] [--max-side 1280]
+        [--threads 1,2,4,8,16] [--steps 6] [--max-side 1280] [--densifying [--prune-weight 0]]
 
 Builds models of each size from the survey's sparse points (jittered copies, SH degree 3), and
 times full training steps on numba's path (the default on the CPU), with the allocator set as
@@ -12,6 +12,8 @@ Each part of the step is timed on its own: numba's cull, tile binning, projectio
 backward, compositing forward and backward, the loss's SSIM term, Adam, and the rest (torch's
 glue: gathers, the loss, gradient writes). It prints seconds per step and per part, the speed-
 up over one thread, and the part whose share grows most with threads: what stops scaling.
+``--densifying`` times the steps of a model that is still growing: each also gathers what density
+control reads (screen gradients, and the blending weights unless ``--prune-weight 0``).
 """
 from __future__ import annotations
 
@@ -111,6 +113,10 @@ def main(argv=None) -> int:
     ap.add_argument("--max-side", type=int, default=1280)
     ap.add_argument("--system-malloc", action="store_true",
                     help="keep glibc's allocator defaults instead of the train job's (commands/train.tune_allocator)")
+    ap.add_argument("--densifying", action="store_true",
+                    help="steps of a growing model: they gather density control's statistics (no densification runs)")
+    ap.add_argument("--prune-weight", type=float, default=None,
+                    help="the strategy's prune_weight (0: no blending weights gathered)")
     args = ap.parse_args(argv)
     cores = os.cpu_count() or 1
     counts = [t for t in (int(x) for x in args.threads.split(",")) if t <= cores]
@@ -128,8 +134,10 @@ def main(argv=None) -> int:
         rows = []
         for threads in counts:
             torch.set_num_threads(threads)
-            cfg = preset("default", sh_degree=3, max_side=args.max_side, pyramid=(), budget=n,
-                         densify_until=0)
+            growing = dict(densify_from=10**9, densify_until=10**9 + 1) if args.densifying else dict(densify_until=0)
+            if args.prune_weight is not None:
+                growing["prune_weight"] = args.prune_weight
+            cfg = preset("default", sh_degree=3, max_side=args.max_side, pyramid=(), budget=n, **growing)
             tr = make_trainer(args.scene, cfg, gaussians=g)
             tr.sh_degree = 3
             tr.data.load_all()

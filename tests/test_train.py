@@ -239,10 +239,13 @@ def test_strategies_own_their_settings_and_checkpoints_keep_them():
     flat = {k: v for k, v in asdict(preset("default")).items() if k != "density"}
     old_mcmc = {**flat, "strategy": "mcmc", "opacity_reg": 0.0, "relocate_opacity": 0.005, "mcmc_draw": "gradient",
                 "pixels_per_gaussian": 36.0, "densify_grad_threshold": 2e-4}
-    assert TrainConfig.from_dict(old_mcmc).density == MCMC(opacity_reg=0.0, relocate_opacity=0.005, draw="gradient")
+    assert TrainConfig.from_dict(old_mcmc).density == MCMC(opacity_reg=0.0, relocate_opacity=0.005, draw="gradient",
+                                                           prune_weight=0.0)
     old_adc = {**flat, "strategy": "adc", "densify_grad_threshold": 3e-4, "pixels_per_gaussian": 8.0,
                "surface_pixels_per_gaussian": 3.5, "relocate_opacity": 0.005}
-    assert TrainConfig.from_dict(old_adc).density == CloneSplit(grad_threshold=3e-4)
+    # saved before significance pruning: resumed without it
+    assert TrainConfig.from_dict(old_adc).density == CloneSplit(grad_threshold=3e-4, surface_pixels_per_gaussian=3.5,
+                                                                prune_weight=0.0)
 
 
 def test_mcmc_strategy_trains_within_its_budget(small_scene):
@@ -452,6 +455,9 @@ def test_job_allocator_keeps_freed_memory():
     ({"budget": 0}, "budget must be at least 1"),
     ({"downscale": 8}, "below 8 px"),
     ({"strategy": "mcmc", "relocate_opacity": 1.0}, "relocate_opacity must be between 0 and 1"),
+    ({"prune_weight": -1.0}, r"--prune-weight must be 0 \(off\)"),
+    ({"prune_weight": float("nan")}, r"--prune-weight must be 0 \(off\)"),
+    ({"prune_share": 0.0}, r"prune_share in \(0, 1\]"),
 ])
 def test_bad_settings_refused_before_work(small_scene, kwargs, msg):
     with pytest.raises(RecGSError, match=msg):
@@ -922,3 +928,117 @@ def test_progress_says_the_share_done_from_the_eta_or_the_time_limit(small_scene
     free = make_trainer(small_scene, tiny_cfg())
     free.elapsed = 30.0
     assert free.progress(0.0, {}).fraction == 0.0
+
+
+def test_a_step_records_each_gaussians_peak_weight_in_training_pixels(small_scene):
+    """While densifying, a step adds the view's blending weights to the statistics, counted in
+    training-resolution pixels whatever the pyramid level it renders at: the weights
+    diagnostics.blending_weights gives for the same model and view."""
+    from recgs_addon.core.outputs.diagnostics import blending_weights
+
+    tr = make_trainer(small_scene, tiny_cfg())
+    i = tr.data.train_ids[1]
+    assert tr.level() == 2 and tr.densifying()
+    w, h = tr.data.sizes[i]
+    expected = blending_weights(tr, i, max_side=-(-max(w, h) // 2))   # the same half-size render
+    tr.order = [i]
+    tr.train_step()
+    peak, count = tr.stats.peak_weight, tr.stats.count
+    assert float(expected.max()) > 5 and torch.allclose(peak, expected, rtol=1e-4, atol=1e-5)
+    assert torch.equal(count > 0, tr.stats.max_radius > 0) and int(count.max()) == 1
+    off = make_trainer(small_scene, tiny_cfg(prune_weight=0))
+    off.order = [i]
+    off.train_step()
+    assert float(off.stats.peak_weight.abs().max()) == 0 and int(off.stats.count.max()) == 1
+
+
+def test_clone_split_removes_what_no_view_needs_and_grows_in_its_room(small_scene):
+    """Drawn in at least prune_views views, under prune_weight pixels in each: removed, and its
+    room goes to growth at the error within the budget; too few views: kept (no evidence); a
+    Gaussian with a high gradient but under twice prune_weight is not copied."""
+    tr = make_trainer(small_scene, tiny_cfg(prune_weight=1.0, prune_views=3, densify_from=0))
+    n = tr.params["means"].shape[0]
+    tr.budget = n                       # full: only the freed room can grow
+    with torch.no_grad():               # nothing transparent, nothing huge
+        tr.params["logit_opacities"].fill_(2.0)
+        tr.params["log_scales"].fill_(float(np.log(1e-4 * tr.extent)))
+    s = tr.stats
+    s.count[:] = 5
+    s.peak_weight[:] = 10.0
+    s.peak_weight[:4] = 0.5             # needless
+    s.peak_weight[4] = 0.5
+    s.count[4] = 2                      # ... but seen by too few views
+    s.accum[:] = 0.0
+    s.accum[10:16] = 1.0 * s.count[10:16]   # high gradient: six candidates for four places
+    s.accum[16] = 1.0 * s.count[16]
+    s.peak_weight[16] = 1.5             # high gradient, but its copies would supply under 1 px
+    means = tr.params["means"].detach().clone()
+    info = tr.densify()
+    assert info["needless"] == 4 and info["cloned"] == 4 and info["split"] == 0
+    assert tr.params["means"].shape[0] == n
+    kept = tr.params["means"].detach()
+    assert not any(torch.equal(kept[j], means[r]) for j in range(len(kept)) for r in range(4))
+    assert any(torch.equal(kept[j], means[4]) for j in range(len(kept)))
+    assert tr.density_totals["needless"] == 4
+    young = tr.stats.young_from            # the four copies, at the end: not judged next time
+    assert young == n - 4
+    tr.stats.count[:] = 5
+    assert torch.equal(torch.nonzero(tr.stats.needless(1.0, 3)).squeeze(1), torch.arange(young))
+    off = make_trainer(small_scene, tiny_cfg(prune_weight=0, densify_from=0))
+    off.stats.count[:] = 5
+    assert off.densify()["needless"] == 0
+
+
+def test_mcmc_relocates_what_no_view_needs():
+    p, opt = _mcmc_params([0.8, 0.8, 0.5, 0.9])
+    needless = torch.tensor([False, True, False, False])
+    moved = density.relocate(p, opt, torch.Generator().manual_seed(0), needless=needless)
+    assert moved == 1
+    assert any(torch.equal(p["means"][1], p["means"][i]) for i in (0, 2, 3))
+
+
+def test_needless_gaussians_go_a_share_at_a_time_the_least_significant_first(small_scene):
+    tr = make_trainer(small_scene, tiny_cfg(prune_weight=1.0, prune_share=0.02))
+    n = tr.params["means"].shape[0]
+    most = int(0.02 * n)
+    s = tr.stats
+    s.count[:] = 5
+    s.peak_weight[:] = 10.0
+    s.peak_weight[: 3 * most] = torch.linspace(0.9, 0.1, 3 * most)   # needless, the last least so
+    chosen = torch.nonzero(tr.cfg.density.needless(tr)).squeeze(1)
+    assert most >= 2 and torch.equal(chosen, torch.arange(2 * most, 3 * most))
+
+
+def test_a_clone_under_significance_renders_as_its_original_did(small_scene):
+    """With significance on, a clone and its original share the original's opacity and shrink
+    (3DGS-MCMC's split): the pair renders nearly as the original did, where INRIA's copy (the
+    same opacity twice) darkens or brightens the spot."""
+    from recgs_addon.core.render.rasterizer import render
+    from recgs_addon.core.train.data import view_tensors
+
+    def change(keeps: bool) -> float:
+        tr = make_trainer(small_scene, tiny_cfg(prune_weight=0.25, clone_keeps_render=keeps))
+        cam, _ = tr.data.view(tr.data.train_ids[0], 1)
+        viewmat, K = view_tensors(cam, tr.device)
+
+        def image():
+            p = tr.params
+            with torch.no_grad():
+                return render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], tr._sh(), viewmat,
+                              K, cam.width, cam.height, sh_degree=tr.sh_degree, compiled=False).rgb
+
+        s = tr.stats
+        s.count[:] = 5
+        s.peak_weight[:] = 10.0
+        s.accum[:] = 0.0
+        s.accum[:40] = 1.0 * s.count[:40]
+        with torch.no_grad():
+            tr.params["log_scales"][:40] = float(np.log(2e-3 * tr.extent))
+            tr.params["logit_opacities"][:40] = 1.0
+        before = image()
+        info = tr.densify()
+        assert info["cloned"] == 40 and info["split"] == 0
+        return float((image() - before).abs().sum())
+
+    keeps, copies = change(True), change(False)
+    assert copies > 0.5 and keeps < copies / 3   # the split keeps the peak and the integral, not the profile

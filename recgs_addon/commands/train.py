@@ -117,7 +117,7 @@ def run_train(args) -> int:
                          budget=_parse_budget(args.budget),
                          compiled=False if args.eager else (True if args.compile_first else None),
                          keep_best=False if args.keep_last else None,
-                         strategy=args.density, medium=args.medium)
+                         strategy=args.density, prune_weight=args.prune_weight, medium=args.medium)
             caustic = dict(mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
                            caustic_k=args.caustic_k, caustic_model=args.caustic_model, warmup=args.warmup,
                            recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,
@@ -280,6 +280,7 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
         "coverage_sparse": {"median_views": plan.views_per_point, "median_passes": plan.passes_per_point},
         "plan": plan.summary(), **outputs,
         "compile": trainer.compiler.summary(), "skipped_steps": trainer.skipped_steps,
+        "density": dict(trainer.density_totals),
         "history": trainer.history, "recurrences": [], **method.summary(),
         "config": {**asdict(trainer.cfg), **asdict(ccfg)},
     }

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from ..caustics.config import ESTIMATORS, MODE_INFO, CausticConfig
 from ..train.config import MEDIUM_MODES, TrainConfig
-from ..train.strategies import DEFAULT_STRATEGY, STRATEGIES
+from ..train.strategies import DEFAULT_STRATEGY, STRATEGIES, CloneSplit
 from .scene import EAGER, IMAGE_FOLDER, SCENE_DIR
 from .table import Option, OptionTable, Setting
 
@@ -43,14 +43,19 @@ TRAIN_OPTIONS = OptionTable([
            note="Raise it with --resume to continue a run that reached it",
            setting=Setting("Iterations", default=0, minimum=0, why="0 = the preset's")),
     Option("--budget", "Maximum number of Gaussians, or 'auto': stop adding Gaussians when held-out quality "
-                       "stops improving, at most one per 3.5 pixels of seabed (the training pixels over the views "
-                       "that see a point). A fixed number gives a smaller file and a faster viewer", default="auto",
+                       f"stops improving, at most one per {CloneSplit.surface_pixels_per_gaussian:g} pixels of seabed "
+                       "(the training pixels over the views that see a point). A fixed number gives a smaller file "
+                       "and a faster viewer", default="auto",
            setting=Setting("Budget", default=500_000, minimum=1, soft_max=5_000_000, kind="int",
                            why="The number used while Automatic Budget is off")),
     Option("--density", f"Density control (default {DEFAULT_STRATEGY}): adc (INRIA's clone/split by screen "
                         "gradient) or mcmc (relocate faded Gaussians under a fixed budget, 3DGS-MCMC; 2-3.5 dB "
                         "lower held-out than adc in 5-minute runs on clean surveys)",
            choices=tuple(sorted(STRATEGIES))),
+    Option("--prune-weight", "Significance, in pixels: while the model grows, a Gaussian that supplies under this "
+                             "many pixels to every training view that draws it (its blending weight) is removed and "
+                             "its room given to growth where the error is, and only Gaussians that supply twice this "
+                             f"are copied (default {CloneSplit.prune_weight:g} with adc, 0 with mcmc; 0: off)", type=float),
     Option("--medium", "The water between seabed and camera (attenuation and backscatter), fitted with the "
                        f"Gaussians so that they hold the seabed's true colour (default {TrainConfig.medium})",
            choices=tuple((m, *_MEDIUM[m]) for m in MEDIUM_MODES),

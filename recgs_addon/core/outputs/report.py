@@ -112,6 +112,11 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
                   f"Median {sup['median_views']:.0f} training views carry a Gaussian (blending weight of at least "
                   f"one pixel); {100 * sup['share_le2']:.0f} % are carried by 2 or fewer, whose colours are "
                   f"fitted to the light of those few photos.", "", "![view support](report/view_support.png)"]
+        needless = (metrics.get("density") or {}).get("needless", 0)
+        if needless:
+            lines += ["", f"Training removed {needless:,} Gaussians that no view needed (under "
+                      f"{cfg.get('density', {}).get('prune_weight', 0.25):g} pixel of every view that drew them) "
+                      "and grew others where the error was."]
     lines += _water_section(metrics.get("medium") or {})
     lines += _water_example(out, rd, method)
     rec = metrics.get("recurrences", [])

@@ -2,7 +2,7 @@
 method's own settings live beside it, in core/caustics/config.py); :func:`preset` gives
 
 * ``default``: coarse to fine, density control :data:`DEFAULT_STRATEGY` (INRIA's clone/split
-  under a budget of one Gaussian per 3.5 pixels of seabed, the training pixels over the median
+  under a budget of one Gaussian per 5 pixels of seabed, the training pixels over the median
   views of a sparse point, or per 8 training pixels if fewer, that stops growing once held-out PSNR
   stops improving; ``strategy="mcmc"``: 3DGS-MCMC, Gaussians below opacity 0.1 relocated,
   growth by opacity, one per 36 pixels), SH degree raised only when it helps held-out views,
@@ -117,6 +117,7 @@ def preset(name: str, **overrides) -> TrainConfig:
     """``vanilla``: INRIA's schedule. ``default``: the lean schedule described in docs/dev/training.md.
     ``overrides`` may name the density control (``strategy``) and its settings by their names."""
     kind = overrides.pop("strategy", None) or DEFAULT_STRATEGY
+    overrides = {k: v for k, v in overrides.items() if v is not None}   # None: the default
     own = strategy_fields(kind)   # an unknown name is refused here
     dens = make_strategy(kind, **{k: overrides.pop(k) for k in list(overrides) if k in own and overrides[k] is not None})
     others = {f.name for f in fields(TrainConfig)}

@@ -95,36 +95,68 @@ def split_values(params: dict, select: torch.Tensor, generator: torch.Generator,
 
 @dataclass
 class GradientStats:
-    """Accumulated screen-space gradient norms (INRIA's xyz_gradient_accum / denom).
+    """What density control reads of the steps since the last densification: the accumulated
+    screen-space gradient norms (INRIA's xyz_gradient_accum / denom), the largest screen radius,
+    and each Gaussian's peak blending weight (the most pixels it supplied to one training view,
+    counted at the training resolution: the significance ``Strategy.prune_weight`` reads).
 
     Gradients are in NDC units (pixel gradient times W/2, H/2) so INRIA's threshold applies.
+    ``count`` is the views in which a Gaussian was drawn.
     """
 
     accum: torch.Tensor
     count: torch.Tensor
     max_radius: torch.Tensor
+    peak_weight: Optional[torch.Tensor] = None   # (N,) float32; None in checkpoints from before
+    #: rows from here on were made by the last densification: not yet judged (a copy needs a
+    #: window of steps to move off its original before what it supplies means anything)
+    young_from: Optional[int] = None
+
+    def __post_init__(self):
+        n = self.accum.shape[0]
+        if self.peak_weight is None:
+            self.peak_weight = torch.zeros(n, dtype=torch.float32, device=self.accum.device)
+        if self.young_from is None:
+            self.young_from = n
 
     @classmethod
-    def zeros(cls, n: int, device=None) -> "GradientStats":
+    def zeros(cls, n: int, device=None, young: int = 0) -> "GradientStats":
+        """Fresh statistics of ``n`` Gaussians, the last ``young`` of them new."""
         return cls(torch.zeros(n, dtype=torch.float64, device=device), torch.zeros(n, dtype=torch.int64, device=device),
-                   torch.zeros(n, dtype=torch.int32, device=device))
+                   torch.zeros(n, dtype=torch.int32, device=device), young_from=n - min(max(young, 0), n))
 
     def to(self, device) -> "GradientStats":
-        return GradientStats(self.accum.to(device), self.count.to(device), self.max_radius.to(device))
+        return GradientStats(self.accum.to(device), self.count.to(device), self.max_radius.to(device),
+                             self.peak_weight.to(device), self.young_from)
 
-    def add(self, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> None:
+    def add(self, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int, height: int,
+            weights: Optional[torch.Tensor] = None) -> None:
+        """One view's screen gradients (``means2d_grad`` (N, 2) pixels, or None) and ``radii``;
+        ``weights`` (N,): the view's blending weights in training pixels."""
         vis = radii > 0
-        g = means2d_grad.detach().to(torch.float64)
-        g = torch.stack([g[:, 0] * width / 2, g[:, 1] * height / 2], 1).norm(dim=1)
-        self.accum += torch.where(vis, g, torch.zeros_like(g))
+        if means2d_grad is not None:
+            g = means2d_grad.detach().to(torch.float64)
+            g = torch.stack([g[:, 0] * width / 2, g[:, 1] * height / 2], 1).norm(dim=1)
+            self.accum += torch.where(vis, g, torch.zeros_like(g))
         self.count += vis.to(torch.int64)
         self.max_radius = torch.maximum(self.max_radius, radii.to(torch.int32))
+        if weights is not None:
+            torch.maximum(self.peak_weight, weights.to(self.peak_weight.dtype), out=self.peak_weight)
 
     def mean(self) -> torch.Tensor:
         return self.accum / self.count.clamp_min(1)
 
+    def needless(self, min_weight: float, min_views: int) -> torch.Tensor:
+        """(N,) bool: Gaussians that no view needs: drawn in at least ``min_views`` training views
+        since the last densification, and under ``min_weight`` pixels in every one of them (the
+        ones that densification made are not judged yet)."""
+        out = (self.count >= min_views) & (self.peak_weight < min_weight)
+        out[self.young_from:] = False
+        return out
+
     def state_dict(self) -> dict:
-        return {"accum": self.accum.cpu(), "count": self.count.cpu(), "max_radius": self.max_radius.cpu()}
+        return {"accum": self.accum.cpu(), "count": self.count.cpu(), "max_radius": self.max_radius.cpu(),
+                "peak_weight": self.peak_weight.cpu(), "young_from": self.young_from}
 
 
 # --- relocation under a fixed budget (3DGS-MCMC, Kheradmand et al. 2024) -----------------
@@ -191,15 +223,26 @@ def _draw(params: dict, alive: torch.Tensor, count: int, generator: torch.Genera
     return idx[torch.multinomial(w.cpu(), count, replacement=True, generator=generator).to(idx.device)]
 
 
+def share_opacity(params: dict, rows: torch.Tensor) -> None:
+    """Make each of ``rows`` (distinct) ready to be copied once: its opacity and scale become
+    those of one of two stacked Gaussians that render as it did (:func:`split_opacity_scale`)."""
+    uniq, new = _copy_sources(params, rows)
+    with torch.no_grad():
+        for name, values in new.items():
+            params[name][uniq] = values.to(params[name].dtype)
+
+
 def relocate(params: dict, optimizer, generator: torch.Generator, dead_opacity: float = DEAD_OPACITY,
-             score: Optional[torch.Tensor] = None) -> int:
-    """Move every dead Gaussian (opacity below ``dead_opacity``, or not finite) onto a live one
-    drawn by opacity; the source and its copies share its opacity and shrink so that together
+             score: Optional[torch.Tensor] = None, needless: Optional[torch.Tensor] = None) -> int:
+    """Move every dead Gaussian (opacity below ``dead_opacity``, not finite, or ``needless``
+    (N,) bool: no view needs it) onto a live one drawn by opacity; the source and its copies share its opacity and shrink so that together
     they render about as it did (:func:`split_opacity_scale`). The Adam moments of every row
     touched start again at zero. Returns the number moved."""
     op = torch.sigmoid(params["logit_opacities"].detach())
     finite = torch.isfinite(params["means"].detach()).all(1) & torch.isfinite(op)
     dead = (op < dead_opacity) | ~finite
+    if needless is not None:
+        dead |= needless
     alive = ~dead
     n_dead = int(dead.sum())
     if n_dead == 0 or not bool(alive.any()):

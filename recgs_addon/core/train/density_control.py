@@ -43,5 +43,8 @@ class DensityMixin:
         """One densification of the configured strategy (strategies.py), then fresh gradient
         statistics for the next window. Returns what it did (counts)."""
         info = self.cfg.density.densify(self)
-        self.stats = density.GradientStats.zeros(self.params["means"].shape[0], self.device)
+        young = info.pop("young", 0)   # the rows it made, at the end
+        self.stats = density.GradientStats.zeros(self.params["means"].shape[0], self.device, young=young)
+        for key, count in info.items():
+            self.density_totals[key] = self.density_totals.get(key, 0) + int(count)
         return info

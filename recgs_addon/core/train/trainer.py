@@ -84,6 +84,8 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         self.params = self._params_from(gaussians)
         self.optimizer = self._make_optimizer()
         self.stats = density.GradientStats.zeros(len(gaussians), self.device)
+        #: what density control did over the run, summed ("cloned", "split", "pruned", "needless", ...)
+        self.density_totals: dict[str, int] = {}
         self.row_grads = RowGrads()   # gradients of the rows in view only (large models)
         self.step = 0
         #: seconds of the run so far, as the time limit counts them: wall clock from
@@ -199,9 +201,10 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         with numba_kernels.own_threads() if path == "numba" else contextlib.nullcontext():
             return self._train_step(path)
 
-    def _forward(self, index: int, level: int, path):
+    def _forward(self, index: int, level: int, path, weights: Optional[torch.Tensor] = None):
         """Render training view ``index`` at pyramid ``level`` on ``path`` and take the loss
-        against the objective's target: (camera, render output, loss)."""
+        against the objective's target: (camera, render output, loss). ``weights``: (N,) zeros
+        the backward fills with the view's blending weights (rasterizer.render)."""
         c = self.cfg
         cam, img = self.data.view(index, level)
         viewmat, K = view_tensors(cam, self.device)
@@ -210,7 +213,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         p = {n: rg.track(n, v, cols=k - 1 if n == "sh_rest" else None) for n, v in self.params.items()}
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (p["sh_dc"], p["sh_rest"]),
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                     background=self._background(), compiled=path, gather=rg)
+                     background=self._background(), compiled=path, gather=rg, weights=weights)
         if self.medium is not None:   # fit the photos as seen through the water
             out = out._replace(rgb=self.as_seen(out, cam))
         target, weight = self.objective.target(index, img, out.rgb.detach())
@@ -239,7 +242,11 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         for g in self.optimizer.param_groups:
             if g["name"] == "means":
                 g["lr"] = self._means_lr()
-        cam, out, loss = self._forward(index, level, path)
+        gather_stats = self.densifying() and (self._uses_gradient_stats() or c.density.uses_significance())
+        weights = None
+        if gather_stats and c.density.uses_significance():
+            weights = torch.zeros(self.params["means"].shape[0], dtype=torch.float32, device=self.device)
+        cam, out, loss = self._forward(index, level, path, weights)
         value = loss.item()
         if not math.isfinite(value):   # skip the update: the parameters keep their last good values
             self.bad_steps += 1
@@ -254,8 +261,12 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         self.row_grads.write()   # .grad of the parameters: the visible rows' gradients, zero elsewhere
         if any(c.density.regularisers()):
             value += self._regulariser_grad(out.radii > 0)
-        if self.densifying() and self._uses_gradient_stats() and out.means2d.grad is not None:
-            self.stats.add(out.means2d.grad, out.radii, cam.width, cam.height)
+        if gather_stats:
+            if weights is not None:   # in pixels of the training resolution
+                w, h = self.data.sizes[index]
+                weights *= (w * h) / (cam.width * cam.height)
+            self.stats.add(out.means2d.grad if self._uses_gradient_stats() else None, out.radii,
+                           cam.width, cam.height, weights)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         if self.densifying():
@@ -401,7 +412,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
             "sh_degree": self.sh_degree, "sh_state": self.sh_state, "best_psnr": self.best_psnr,
             "since_best": self.since_best, "reset_done": self.reset_done, "done_reason": self.done_reason,
             "objective_optimizer": None if self.objective_optimizer is None else self.objective_optimizer.state_dict(),
-            "last_densify": self.last_densify, "compile_stall": self.compile_stall, "plateau_step": self.plateau_step,
+            "last_densify": self.last_densify, "density_totals": dict(self.density_totals), "compile_stall": self.compile_stall, "plateau_step": self.plateau_step,
             "medium": self._medium_state(),
             "best": None if self.best is None else {
                 **self.best, "params": {n: v.detach().cpu() for n, v in self.best["params"].items()}},
@@ -429,6 +440,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         self.best_psnr, self.since_best = s["best_psnr"], s["since_best"]
         self.reset_done = s["reset_done"]
         self.last_densify = s.get("last_densify", -1)   # checkpoints before keep_best have neither
+        self.density_totals = dict(s.get("density_totals", {}))
         self.compile_stall = s.get("compile_stall", 0.0)
         self.plateau_step = s.get("plateau_step")
         self._stall_measured = False   # this process's own first compiled step adds to it
