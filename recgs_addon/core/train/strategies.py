@@ -39,7 +39,8 @@ class Strategy:
     prune_weight: float = 0.25
     prune_views: int = 3
     #: at most this share of the model goes as needless in one densification, the least
-    #: significant first (together they still supply pixels: taking many at once shakes the fit)
+    #: significant first (1: no cap; a cap of 2 % did not steady the fit where 1 px pruning
+    #: shook it, a smaller prune_weight did: benchmarks/RESULTS.md#prune-by-significance)
     prune_share: float = 1.0
     #: the strategy's name (what the command line's ``--density`` and a checkpoint give)
     name: str = field(default="", init=False)
