@@ -26,11 +26,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-
-# as the train job (commands/train.run_train): torch's idle threads sleep, so that a step on a
-# large view lets torch keep its threads (numba_kernels.own_threads; --torch-one-thread: not)
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-import torch  # noqa: E402
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -117,23 +113,17 @@ def main(argv=None) -> int:
     ap.add_argument("--max-side", type=int, default=1280)
     ap.add_argument("--system-malloc", action="store_true",
                     help="keep glibc's allocator defaults instead of the train job's (commands/train.tune_allocator)")
-    ap.add_argument("--torch-one-thread", action="store_true",
-                    help="torch on one thread through every step, whatever the view's size")
     ap.add_argument("--densifying", action="store_true",
                     help="steps of a growing model: they gather density control's statistics (no densification runs)")
     ap.add_argument("--prune-weight", type=float, default=None,
                     help="the strategy's prune_weight (0: no blending weights gathered)")
     args = ap.parse_args(argv)
     cores = os.cpu_count() or 1
-    if args.torch_one_thread:
-        numba_kernels.SHARE_PIXELS = float("inf")
     counts = [t for t in (int(x) for x in args.threads.split(",")) if t <= cores]
     # the allocator as the train job sets it: with glibc's defaults each step's large buffers are
     # fresh mappings, and faulting their pages in runs on one thread at a time
     allocator = "system" if args.system_malloc else tune_allocator()
-    print(f"torch {torch.__version__}, {cores} cores; thread counts {counts}; numba path; allocator {allocator}; "
-          f"OMP_WAIT_POLICY {os.environ.get('OMP_WAIT_POLICY')}; torch "
-          f"{'on one thread' if args.torch_one_thread else 'keeps its threads on views of 500k pixels or more'}")
+    print(f"torch {torch.__version__}, {cores} cores; thread counts {counts}; numba path; allocator {allocator}")
     from recgs_addon.core.train import compiling
     if not compiling.numba_is_warm():
         print("warming numba's cache (once)", flush=True)

@@ -81,10 +81,6 @@ def tune_allocator() -> str:
 
 def run_train(args) -> int:
     t_command = time.perf_counter()   # the time limit counts from here (Trainer.start_clock)
-    # torch's idle OpenMP threads sleep instead of spinning: on large views a step then lets
-    # torch keep its threads beside numba's kernels (numba_kernels.own_threads); read once,
-    # when torch loads
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import torch
 
     allocator = tune_allocator()

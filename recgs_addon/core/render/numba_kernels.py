@@ -26,12 +26,7 @@ torch's OpenMP threads do not sleep at once: after each of torch's parallel oper
 spin, and on a machine with no spare core they take the cores these kernels' threads need.
 :func:`own_threads` gives the kernels torch's threads for a block and torch one (the trainer's
 step on this path; two cores: 0.064 against 0.079 s a step at 59,733 Gaussians, 0.038 against
-0.047 s at 7,000, benchmarks/bench_train_step.py). Where torch's idle threads sleep
-(``OMP_WAIT_POLICY=PASSIVE`` before torch loads, as the train job sets it) and a view has at
-least :data:`SHARE_PIXELS` pixels, ``own_threads(share=True)`` leaves torch its threads too:
-its work between the kernels (gathers, the loss, Adam) is then large enough to gain from them
-(500k Gaussians at 1280x960: 0.604 against 0.639 s a step on two cores), where on small views
-waking its threads costs more than they give (256x192: 0.025 against 0.024 s).
+0.047 s at 7,000, benchmarks/bench_train_step.py).
 
 The machine code is cached in ``NUMBA_CACHE_DIR`` (the trainer points it at RecGS's per-user
 cache folder); compiling it cold takes ~15 s of one core, once per machine and version.
@@ -52,14 +47,6 @@ _STATE: dict = {}
 _POOL: dict = {}
 _LOCK = threading.Lock()
 _THREADS: dict = {"n": None}   # own_threads' count (None: torch's)
-#: views of at least this many pixels may share the threads with torch (see the module)
-SHARE_PIXELS = 500_000
-
-
-def torch_threads_sleep() -> bool:
-    """Whether torch's OpenMP threads sleep when idle (``OMP_WAIT_POLICY=PASSIVE`` in this
-    process's environment; set before torch loads, as the train job does)."""
-    return os.environ.get("OMP_WAIT_POLICY", "").strip().upper() == "PASSIVE"
 
 
 def threads() -> int:
@@ -69,17 +56,13 @@ def threads() -> int:
 
 
 @contextmanager
-def own_threads(share: bool = False):
+def own_threads():
     """Inside the block, the kernels run on the threads torch had and torch on one: torch's
     work between the kernels (loss, Adam, gathers) is small next to theirs, and a single
-    torch thread leaves no OpenMP thread spinning on the cores they use. With ``share`` (a
-    large view) and torch's threads sleeping when idle (:func:`torch_threads_sleep`), torch
-    keeps its threads as well."""
+    torch thread leaves no OpenMP thread spinning on the cores they use."""
     n, prev = threads(), _THREADS["n"]
     t = torch.get_num_threads()
     _THREADS["n"] = n
-    if share and torch_threads_sleep():
-        t = 1   # nothing to take back
     if t > 1:
         torch.set_num_threads(1)
     try:

@@ -197,16 +197,9 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         # before own_threads: a finished warm-up gives torch its core back in compiled(), and
         # own_threads must read that count (its exit restores what it read)
         path = self.compiler.compiled()
-        # numba's path: its kernels get torch's threads, torch one, or on large views torch
-        # keeps its threads too where they sleep when idle (numba_kernels.own_threads)
-        share = self.view_pixels() >= numba_kernels.SHARE_PIXELS
-        with numba_kernels.own_threads(share) if path == "numba" else contextlib.nullcontext():
+        # numba's path: its kernels get torch's threads, torch one (numba_kernels.own_threads)
+        with numba_kernels.own_threads() if path == "numba" else contextlib.nullcontext():
             return self._train_step(path)
-
-    def view_pixels(self) -> int:
-        """Pixels of a (median) training view at the pyramid level the next step renders at."""
-        sizes = sorted(self.data.sizes[i][0] * self.data.sizes[i][1] for i in self.data.train_ids)
-        return sizes[len(sizes) // 2] // self.level() ** 2 if sizes else 0
 
     def _forward(self, index: int, level: int, path, weights: Optional[torch.Tensor] = None):
         """Render training view ``index`` at pyramid ``level`` on ``path`` and take the loss
