@@ -28,7 +28,6 @@ def blending_weights(trainer, index: int, max_side: int = SUPPORT_SIDE) -> torch
     w, h = trainer.data.sizes[index]
     level = max(1, -(-max(w, h) // max_side))
     cam = trainer.data.camera(index, level)
-    area = (w * h) / (cam.width * cam.height)   # training pixels per rendered pixel
     viewmat, K = view_tensors(cam, trainer.device)
     p = {n: v.detach() for n, v in trainer.params.items()}
     dc = p["sh_dc"].clone().requires_grad_(True)   # something for the backward to reach
@@ -39,7 +38,7 @@ def blending_weights(trainer, index: int, max_side: int = SUPPORT_SIDE) -> torch
                  compiled=trainer.compiler.compiled(),   # the training's own path (numba's: 2.5x eager)
                  weights=weights)
     out.rgb.sum().backward()
-    return weights * area
+    return weights * trainer.data.pixel_area(index, cam)
 
 
 def view_support(trainer, min_weight: float = 1.0) -> np.ndarray:

@@ -139,8 +139,8 @@ def composite_backward(t_lo, t_hi, tile_start, rows, pos, geo, vals, ts, tiles_x
     """Gradients of the intersections of tiles t_lo..t_hi-1, ``d_isect`` (11, M): wrt the centre x, y (pixels),
     l11, l21, l22, opacity and the 5 values, from ``g_out`` (C, Hp, Wp), the gradient wrt
     ``out``; with a twelfth row, also each intersection's blending weight (the sum of its
-    ``alpha T`` over the tile's pixels: its share of the pixels, no gradient). Replays each pixel's front-to-back pass with the forward's own operations (so it
-    sees the forward's alphas, skips and transmittances bit for bit, up to ``last``) and uses
+    ``alpha T`` over the tile's pixels: its share of the pixels, no gradient). Replays each
+    pixel's front-to-back pass with the forward's own operations (so it sees the forward's alphas, skips and transmittances bit for bit, up to ``last``) and uses
     ``dC/dalpha_i = v_i T_i - (sum_{k>i} v_k alpha_k T_k) / (1 - alpha_i)``, the sum behind
     being <g_out, out> less the running sum in front (as the eager kernels: total - cumsum)."""
     n_c = vals.shape[1]

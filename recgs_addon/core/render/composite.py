@@ -71,15 +71,17 @@ class _Composite(torch.autograd.Function):
         ts = plan.tile_size
         hp, wp = plan.tiles_y * ts, plan.tiles_x * ts
         dev = g_img.device
-        g_pad = torch.zeros(hp, wp, n_c, dtype=dtype, device=dev)
-        g_pad[:plan.height, :plan.width] = g_img
-        g_tiles = g_pad.view(plan.tiles_y, ts, plan.tiles_x, ts, n_c).permute(4, 0, 2, 1, 3)
-        g_tiles = g_tiles.reshape(n_c, plan.tiles_y * plan.tiles_x, ts * ts)
+
+        def tiled(img):
+            """(H, W, C) image -> (C, tiles, P), padded to whole tiles with zeros."""
+            pad = torch.zeros(hp, wp, img.shape[-1], dtype=dtype, device=dev)
+            pad[:plan.height, :plan.width] = img
+            pad = pad.view(plan.tiles_y, ts, plan.tiles_x, ts, img.shape[-1]).permute(4, 0, 2, 1, 3)
+            return pad.reshape(img.shape[-1], plan.tiles_y * plan.tiles_x, ts * ts)
+
+        g_tiles = tiled(g_img)
         if plan.weights is not None:   # (tiles, P): pixels inside the image, not its padding
-            inside = torch.zeros(hp, wp, dtype=dtype, device=dev)
-            inside[:plan.height, :plan.width] = 1.0
-            inside = inside.view(plan.tiles_y, ts, plan.tiles_x, ts).permute(0, 2, 1, 3)
-            inside = inside.reshape(plan.tiles_y * plan.tiles_x, ts * ts)
+            inside = tiled(torch.ones(plan.height, plan.width, 1, dtype=dtype, device=dev))[0]
         pxl, pyl = _pixel_offsets(ts, dtype, dev)
         n_vis = ctx.n_vis
         n_slots = geo.shape[1]
@@ -97,7 +99,8 @@ class _Composite(torch.autograd.Function):
             d_slot[:_N_GEOM, off:off + tc * g] = dg.reshape(_N_GEOM, -1)
             d_slot[_N_GEOM:_N_GEOM + n_c, off:off + tc * g] = dv.reshape(n_c, -1)
             if plan.weights is not None:
-                d_slot[-1, off:off + tc * g] = _chunk_weights(geo_c, fall, t_excl, inside.index_select(0, tiles)).reshape(-1)
+                w_c = _chunk_weights(geo_c, fall, t_excl, inside.index_select(0, tiles))
+                d_slot[-1, off:off + tc * g] = w_c.reshape(-1)
         ctx.state = None
         d_rows = torch.zeros(d_slot.shape[0], n_vis + 1, dtype=dtype, device=dev)
         d_rows.index_add_(1, plan.slot_rows, d_slot)

@@ -119,7 +119,7 @@ def preset(name: str, **overrides) -> TrainConfig:
     kind = overrides.pop("strategy", None) or DEFAULT_STRATEGY
     overrides = {k: v for k, v in overrides.items() if v is not None}   # None: the default
     own = strategy_fields(kind)   # an unknown name is refused here
-    dens = make_strategy(kind, **{k: overrides.pop(k) for k in list(overrides) if k in own and overrides[k] is not None})
+    dens = make_strategy(kind, **{k: overrides.pop(k) for k in list(overrides) if k in own})
     others = {f.name for f in fields(TrainConfig)}
     stray = [k for k in overrides if k not in others and any(k in strategy_fields(n) for n in STRATEGIES)]
     if stray:

@@ -152,6 +152,12 @@ class TrainData:
         """Pixels of the training views (``ids``, default all) at their training size."""
         return sum(self.sizes[i][0] * self.sizes[i][1] for i in (self.train_ids if ids is None else ids))
 
+    def pixel_area(self, index: int, cam) -> float:
+        """Training-resolution pixels of view ``index`` per pixel of ``cam`` (a render of it at
+        a pyramid level or another size)."""
+        w, h = self.sizes[index]
+        return (w * h) / (cam.width * cam.height)
+
 
 def view_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
     return (torch.tensor(cam.viewmat, dtype=torch.float32, device=device),

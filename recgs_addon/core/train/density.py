@@ -235,8 +235,8 @@ def share_opacity(params: dict, rows: torch.Tensor) -> None:
 def relocate(params: dict, optimizer, generator: torch.Generator, dead_opacity: float = DEAD_OPACITY,
              score: Optional[torch.Tensor] = None, needless: Optional[torch.Tensor] = None) -> int:
     """Move every dead Gaussian (opacity below ``dead_opacity``, not finite, or ``needless``
-    (N,) bool: no view needs it) onto a live one drawn by opacity; the source and its copies share its opacity and shrink so that together
-    they render about as it did (:func:`split_opacity_scale`). The Adam moments of every row
+    (N,) bool: no view needs it) onto a live one drawn by opacity; the source and its copies
+    share its opacity and shrink so that together they render about as it did (:func:`split_opacity_scale`). The Adam moments of every row
     touched start again at zero. Returns the number moved."""
     op = torch.sigmoid(params["logit_opacities"].detach())
     finite = torch.isfinite(params["means"].detach()).all(1) & torch.isfinite(op)

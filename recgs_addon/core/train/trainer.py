@@ -263,8 +263,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
             value += self._regulariser_grad(out.radii > 0)
         if gather_stats:
             if weights is not None:   # in pixels of the training resolution
-                w, h = self.data.sizes[index]
-                weights *= (w * h) / (cam.width * cam.height)
+                weights *= self.data.pixel_area(index, cam)
             self.stats.add(out.means2d.grad if self._uses_gradient_stats() else None, out.radii,
                            cam.width, cam.height, weights)
         self.optimizer.step()
@@ -412,7 +411,8 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
             "sh_degree": self.sh_degree, "sh_state": self.sh_state, "best_psnr": self.best_psnr,
             "since_best": self.since_best, "reset_done": self.reset_done, "done_reason": self.done_reason,
             "objective_optimizer": None if self.objective_optimizer is None else self.objective_optimizer.state_dict(),
-            "last_densify": self.last_densify, "density_totals": dict(self.density_totals), "compile_stall": self.compile_stall, "plateau_step": self.plateau_step,
+            "last_densify": self.last_densify, "density_totals": dict(self.density_totals),
+            "compile_stall": self.compile_stall, "plateau_step": self.plateau_step,
             "medium": self._medium_state(),
             "best": None if self.best is None else {
                 **self.best, "params": {n: v.detach().cpu() for n, v in self.best["params"].items()}},
