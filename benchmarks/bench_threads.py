@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_threads.py SCENE_DIR [--gaussians 50000,500000]
         [--threads 1,2,4,8,16] [--steps 6] [--max-side 1280] [--densifying [--prune-weight 0]]
+        [--device cuda]
 
 Builds models of each size from the survey's sparse points (jittered copies, SH degree 3), and
 times full training steps on numba's path (the default on the CPU), with the allocator set as
@@ -14,6 +15,8 @@ glue: gathers, the loss, gradient writes). It prints seconds per step and per pa
 up over one thread, and the part whose share grows most with threads: what stops scaling.
 ``--densifying`` times the steps of a model that is still growing: each also gathers what density
 control reads (screen gradients, and the blending weights unless ``--prune-weight 0``).
+``--device cuda`` (or mps) times the same steps on a GPU instead, on the plain-PyTorch path the
+trainer takes there (whole steps, each ended by a device synchronisation; Adam apart).
 """
 from __future__ import annotations
 
@@ -104,6 +107,63 @@ def timed_steps(tr, steps: int) -> tuple[float, dict]:
     return statistics.median(totals), {k: statistics.median(v) for k, v in parts.items()}
 
 
+def timed_device_steps(tr, steps: int) -> tuple[float, dict]:
+    """Median seconds per step and for Adam over ``steps`` steps (after two) on a GPU: each step
+    ends with the device's synchronisation, so the time is the kernels', not their launch."""
+    dev = tr.device.type
+    sync = {"cuda": lambda: torch.cuda.synchronize(tr.device),
+            "mps": lambda: torch.mps.synchronize()}.get(dev, lambda: None)
+    real_step = tr.optimizer.step
+    spent: dict = defaultdict(float)
+
+    def adam(*a, **k):
+        sync()
+        t = time.perf_counter()
+        try:
+            return real_step(*a, **k)
+        finally:
+            sync()
+            spent["adam"] += time.perf_counter() - t
+    tr.optimizer.step = adam
+    totals, parts = [], defaultdict(list)
+    try:
+        for k in range(steps + 2):
+            spent.clear()
+            sync()
+            t0 = time.perf_counter()
+            tr.train_step()
+            sync()
+            total = time.perf_counter() - t0
+            if k >= 2:
+                totals.append(total)
+                parts["adam"].append(spent["adam"])
+                parts["rest"].append(total - spent["adam"])
+    finally:
+        tr.optimizer.step = real_step
+    return statistics.median(totals), {k: statistics.median(v) for k, v in parts.items()}
+
+
+def device_row(args, n: int) -> None:
+    """One model size on ``args.device``: seconds per step on the plain-PyTorch path."""
+    g = model(args.scene, n)
+    growing = dict(densify_from=10**9, densify_until=10**9 + 1) if args.densifying else dict(densify_until=0)
+    if args.prune_weight is not None:
+        growing["prune_weight"] = args.prune_weight
+    cfg = preset("default", sh_degree=3, max_side=args.max_side, pyramid=(), budget=n, device=args.device,
+                 compiled=False, **growing)
+    tr = make_trainer(args.scene, cfg, gaussians=g)
+    tr.sh_degree = 3
+    tr.data.load_all()
+    total, parts = timed_device_steps(tr, args.steps)
+    w, h = tr.data.sizes[tr.data.train_ids[0]]
+    peak = ""
+    if tr.device.type == "cuda":
+        peak = f", peak GPU memory {torch.cuda.max_memory_allocated(tr.device) / 2**30:.2f} GiB"
+    print(f"\n{n:,} Gaussians at {w}x{h} on {args.device} (plain PyTorch): {total:.4f} s a step "
+          f"({1 / total:.1f} steps/s), Adam {parts['adam']:.4f} s, the rest {parts['rest']:.4f} s{peak}",
+          flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene", type=Path)
@@ -117,7 +177,15 @@ def main(argv=None) -> int:
                     help="steps of a growing model: they gather density control's statistics (no densification runs)")
     ap.add_argument("--prune-weight", type=float, default=None,
                     help="the strategy's prune_weight (0: no blending weights gathered)")
+    ap.add_argument("--device", default="cpu",
+                    help="cuda or mps: time the steps on that GPU (plain PyTorch) instead of numba's threads")
     args = ap.parse_args(argv)
+    if args.device != "cpu":
+        print(f"torch {torch.__version__}, device {args.device}"
+              + (f" ({torch.cuda.get_device_name(args.device)})" if args.device.startswith("cuda") else ""))
+        for n in (int(x) for x in args.gaussians.split(",")):
+            device_row(args, n)
+        return 0
     cores = os.cpu_count() or 1
     counts = [t for t in (int(x) for x in args.threads.split(",")) if t <= cores]
     # the allocator as the train job sets it: with glibc's defaults each step's large buffers are

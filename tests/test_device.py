@@ -25,6 +25,7 @@ def device_scene(tmp_path_factory):
 @pytest.mark.parametrize("mode,strategy,estimator", [
     ("3dgs", "mcmc", "lowpass"), ("3dgs", "adc", "lowpass"), ("recgs", "adc", "lowpass"),
     ("recgs", "adc", "lightfield"), ("recgs", "adc", "consensus"), ("recgs", "adc", "likelihood"),
+    ("recgs", "adc", "passes"),
     ("joint", "adc", "lowpass"),
     ("filter2d", "adc", "lowpass"),
 ])

@@ -233,7 +233,7 @@ def _for_counts(gains: dict, counts: torch.Tensor) -> dict:
     """``gains`` with an entry for every count in ``counts`` (a count it lacks takes the
     nearest's; 0, where no frame saw the pixel, keeps it unscaled)."""
     have = sorted(gains)
-    one = torch.ones(3)
+    one = torch.ones(3, device=counts.device)
     return {int(n): (gains[n] if n in gains else gains[min(have, key=lambda k: abs(k - n))]) if n >= 1 and have else one
             for n in torch.unique(counts).tolist()}
 

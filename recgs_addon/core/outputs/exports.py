@@ -97,8 +97,8 @@ def write_true_colour(method, out: Path) -> dict:
         image = data.view(i, 1)[1] if free is None else free
         true = true_colour_photo(trainer, i, image).clamp(0, 1)
         stem = _stem(data.scene.cameras[i].name)
-        write_image(out / "truecolour" / f"{stem}.png", true.numpy())
-        write_image(out / "truecolour" / f"{stem}.exr", true.numpy())
+        write_image(out / "truecolour" / f"{stem}.png", true.cpu().numpy())
+        write_image(out / "truecolour" / f"{stem}.exr", true.cpu().numpy())
         gt = data.gt_view(i)
         if gt is not None:
             scores.append(psnr(true, gt))

@@ -90,7 +90,7 @@ def _sample_colours(data, obs: dict) -> None:
     patch = 1.5 * float(np.median([np.percentile(r / cam.fx, 95) for _, cam, _, _, _, r in views]))
     colour = []
     for i, cam, _, u, v, r in views:
-        img = data.view(i, 1)[1].numpy().astype(np.float64)
+        img = data.view(i, 1)[1].cpu().numpy().astype(np.float64)
         sat = np.zeros((cam.height + 1, cam.width + 1, 3))
         sat[1:, 1:] = img.cumsum(0).cumsum(1)          # summed-area table: any box's mean in O(1)
         half = np.maximum(1.0, patch * cam.fx / r)
