@@ -368,6 +368,63 @@ def test_a_stopped_frame_choice_leaves_nothing(clip, tmp_path):
     assert not (tmp_path / "s").exists()          # nor the survey folder it made
 
 
+def _pan(tmp_path, name, seconds=3.0, fps=30, widths=0.5):
+    """A clip of a slow pan over a seabed (data/sample's first view, enlarged): the view moves
+    ``widths`` of its width in all, as a diver hovering forward for a few seconds does."""
+    _, views = sample_views()
+    big = np.repeat(np.repeat(views[0], 2, 0), 2, 1)           # 512 x 384
+    h, w = 192, 256
+    n = int(seconds * fps)
+    frames = [big[64:64 + h, int(round(k * widths * w / (n - 1))):][:, :w] for k in range(n)]
+    path = tmp_path / name
+    encode(path, frames, fps=fps)
+    return path
+
+
+def test_a_short_clip_gives_enough_frames_at_the_defaults(tmp_path):
+    """A 3-s pan over half an image gives a handful of frames at the motion step: the step is
+    lowered until the clip gives the frames a survey needs, and the record says so."""
+    from recgs_addon.core.capture.video import import_frames
+
+    record = import_frames(_pan(tmp_path, "short pan.mp4"), tmp_path / "s")
+    tries = record["stats"]["short_clip"]
+    assert tries[0]["step"] == fc.MOTION_STEP and tries[0]["frames"] < fc.SHORT_CLIP_FRAMES
+    assert len(record["frames"]) >= fc.SHORT_CLIP_FRAMES and tries[-1]["frames"] == len(record["frames"])
+    assert tries[-1]["step"] < fc.MOTION_STEP
+    assert record["stats"]["moved"] == pytest.approx(0.5, abs=0.15)   # the pan, as measured
+    assert len(list((tmp_path / "s" / "images").iterdir())) == len(record["frames"])
+    assert record["settings"]["step"] == fc.MOTION_STEP              # what a rerun is matched by
+
+
+def test_shorter_step_stops_where_a_smaller_step_gives_nothing():
+    from recgs_addon.core.capture.video import VideoOptions, shorter_step
+
+    def rec(frames, windows, count, moved, dark=0):
+        return {"frames": [{}] * frames, "frame_count": count,
+                "stats": {"windows": windows, "dark_frames": dark, "moved": moved}}
+    o = VideoOptions()
+    assert shorter_step(rec(30, 30, 300, 3.0), o) is None                       # enough
+    assert shorter_step(rec(10, 22, 22, 0.6), o) is None                        # every frame a window
+    assert shorter_step(rec(7, 7, 80, 0.7), o) == pytest.approx(0.7 / 30)       # a quarter more than wanted
+    assert shorter_step(rec(7, 7, 80, 4.0), o) == pytest.approx(0.05)           # at least halved
+    assert shorter_step(rec(2, 3, 600, 0.0), o) == fc.MIN_STEP                  # no motion: the floor
+    assert shorter_step(rec(2, 3, 600, 0.0), VideoOptions(step=fc.MIN_STEP)) is None
+    assert shorter_step(rec(7, 7, 80, 0.7), VideoOptions(every_s=0.5)) is None  # frames by time
+
+
+def test_a_clip_that_does_not_move_says_what_it_measured(tmp_path):
+    """A camera that holds still: no step gives frames; the message names the clip's length, the
+    motion measured and what to change."""
+    _, views = sample_views()
+    rng = np.random.default_rng(1)
+    path = tmp_path / "still.mp4"
+    encode(path, [np.clip(views[3].astype(np.int16) + rng.integers(-1, 2, views[3].shape), 0, 255).astype(np.uint8)
+                  for _ in range(48)])
+    r, ev = run_video(path, tmp_path / "s")
+    _assert_clean_failure(r, ev, path, "distinct frame(s) in its 4.0 s", tmp_path / "s")
+    assert "the view moved about 0.0" in ev[-1]["message"] and "--every" in ev[-1]["message"]
+
+
 # -- bad clips ------------------------------------------------------------------------------------
 
 def _assert_clean_failure(r, events, clip_path, words, out):

@@ -180,6 +180,13 @@ def cmd_video(args) -> int:
                   file=sys.stderr, flush=True)
         chosen = len(record["frames"])
         progress("frames", record["frame_count"], record["frame_count"], chosen=chosen)
+        short = record["stats"].get("short_clip")
+        if short and t_frames:
+            first, last = short[0], short[-1]
+            print(f"a short clip: a step of {first['step']:.3g} of the image gave {first['frames']} frames, so "
+                  f"{last['frames']} were taken at a step of {last['step']:.3g} (the view moved about "
+                  f"{record['stats']['moved']:.2f} of the image in {record['duration_s']:.1f} s)",
+                  file=sys.stderr, flush=True)
         sfm_options = SfmOptions(camera_model=args.camera_model, threads=args.threads, matching="sequential",
                                  overlap=args.overlap,
                                  vocab_tree=str(args.loop_detection) if args.loop_detection else None,

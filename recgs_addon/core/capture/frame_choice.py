@@ -57,6 +57,14 @@ MAX_FRAMES_PER_SECOND = 4.0
 #: Fewest distinct frames a survey is made of: a point needs several views for SfM, and caustic
 #: removal compares ~8 views of it.
 MIN_FRAMES = 8
+#: Frames a clip should give at least: where the motion step gives fewer (a clip of a few
+#: seconds), the step is lowered until it gives this many or every distinct frame. A 4-s clip of
+#: a wreck that moved 0.7 of the image gave 7 frames at the default step and registered 25 of 25
+#: at a step of 0.03 (benchmarks/RESULTS.md#real-clips).
+SHORT_CLIP_FRAMES = 24
+#: ... but never below this step (shares of the image): closer frames add no baseline for
+#: structure from motion and look alike to the frame choice.
+MIN_STEP = 0.01
 #: Frames are judged at this long side in pixels (smaller clips at their own size): the grey
 #: image and its Laplacian then cost a few ms a frame, and motion blur of 2 px or more at 1080p
 #: still shows.
@@ -198,14 +206,27 @@ class MotionWindows:
         self._ref: Optional[ShiftReference] = None
         self._t0 = 0.0
         self._frames = 0
+        self._moved = 0.0      # the view's motion over the windows closed so far (shares of the image)
+        self._share = 0.0      # ... and within the open one, from its first frame
+
+    @property
+    def moved(self) -> float:
+        """How far the view has moved over the clip so far, in shares of the image: the new
+        share at which each window ended, summed (a window that lost its match counts one
+        step). What a smaller step would give: about ``moved / step`` windows."""
+        return self._moved + self._share
 
     def starts_window(self, cand: "Candidate") -> bool:
-        if self._ref is not None and cand.time_s - self._t0 < self.max_s:
+        if self._ref is not None:
             dx, dy, peak = self._ref.shift(cand.motion)
-            if self._frames < 2 if peak < self.lost_peak else new_share(dx, dy) < self.step:
+            share = self.step if peak < self.lost_peak else new_share(dx, dy)
+            if cand.time_s - self._t0 < self.max_s and (
+                    self._frames < 2 if peak < self.lost_peak else share < self.step):
                 self._frames += 1
+                self._share = max(self._share, share) if peak >= self.lost_peak else self._share
                 return False
-        self._ref, self._t0, self._frames = ShiftReference(cand.motion), cand.time_s, 1
+            self._moved += share if peak >= self.lost_peak else max(self._share, self.step)
+        self._ref, self._t0, self._frames, self._share = ShiftReference(cand.motion), cand.time_s, 1, 0.0
         return True
 
 

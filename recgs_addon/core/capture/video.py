@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -302,10 +302,22 @@ def import_frames(clip: str | Path, survey: str | Path, options: Optional[VideoO
     created = not survey.exists()
     make_folder(survey, "survey folder")
     staging = survey / ".images.partial"
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir()
     try:
-        record = _decode_and_write(av, info, staging, o, windows, report, stop)
+        tries = []
+        while True:
+            shutil.rmtree(staging, ignore_errors=True)
+            staging.mkdir()
+            record = _decode_and_write(av, info, staging, o, windows, report, stop)
+            tries.append({"step": o.step, "frames": len(record["frames"])})
+            step = shorter_step(record, o)
+            if step is None:
+                break
+            o = replace(o, step=step)
+            windows = fc.MotionWindows(step)
+        if len(tries) > 1:
+            record["stats"]["short_clip"] = tries
+            record["settings"] = (options or VideoOptions()).settings()   # what a rerun is matched by
+        _enough_frames(info, record)
         record["source"] = str(clip.resolve())
         images = survey / "images"
         if images.exists():
@@ -318,6 +330,41 @@ def import_frames(clip: str | Path, survey: str | Path, options: Optional[VideoO
     with atomic_path(survey / FRAMES_JSON, "frame list") as tmp:
         tmp.write_text(json.dumps(record, indent=1), encoding="utf-8")
     return record
+
+
+def shorter_step(record: dict, o: VideoOptions) -> Optional[float]:
+    """The motion step to choose a short clip's frames again with, or None: where the step gave
+    fewer than :data:`~.frame_choice.SHORT_CLIP_FRAMES` frames, one that gives about a quarter
+    more than that from the motion the clip showed (``moved / step`` windows), at least halving
+    the step and never below :data:`~.frame_choice.MIN_STEP`; None when the frames are chosen by
+    time, enough were chosen, the step is at its floor, or every frame decoded was a window."""
+    st = record["stats"]
+    n = len(record["frames"])
+    if not o.by_motion or n >= fc.SHORT_CLIP_FRAMES or o.step <= fc.MIN_STEP:
+        return None
+    if st["windows"] >= record["frame_count"] - st["dark_frames"]:
+        return None      # each frame was a window of its own: a smaller step gives nothing more
+    want = st["moved"] / (1.25 * fc.SHORT_CLIP_FRAMES)
+    return max(fc.MIN_STEP, min(0.5 * o.step, want))
+
+
+def _enough_frames(info: ClipInfo, record: dict) -> None:
+    """VideoError naming the clip, its length, the motion measured and what to change, where
+    fewer than :data:`~.frame_choice.MIN_FRAMES` distinct frames were chosen."""
+    st, n = record["stats"], len(record["frames"])
+    if n >= fc.MIN_FRAMES:
+        return
+    why = (f"only {n} distinct frame(s) in its {info.duration_s:.1f} s ({record['frame_count']} decoded, "
+           f"{st['near_duplicates']} near-duplicates of the frame before, {st['dark_windows']} windows too dark)")
+    if st.get("by") == "motion":
+        steps = [t["step"] for t in st.get("short_clip", [])] or [st["step"]]
+        why += (f"; the view moved about {st['moved']:.2f} of the image in all, and a step of "
+                f"{min(steps):.3g} of the image between frames found no more")
+        todo = ("film a longer pass over the seabed, or take frames by time instead (--every 0.1 for ten a "
+                "second)")
+    else:
+        todo = "take frames closer in time (a smaller --every), or by motion (leave --every out)"
+    raise VideoError(f"{info.path}: {why}; a survey needs at least {fc.MIN_FRAMES}: {todo}")
 
 
 def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, windows, report, stop) -> dict:
@@ -383,10 +430,6 @@ def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, windows
         raise VideoError(f"{info.path}: too dark: {s.dark_frames} of its {index} frames have a mean brightness below "
                          f"{100 * o.dark_level:g} % (median {100 * float(np.median(brightness)):.1f} %); film with "
                          "lights on, or brighten the clip first")
-    if len(written) < fc.MIN_FRAMES:
-        raise VideoError(f"{info.path}: only {len(written)} distinct frame(s) ({s.duplicates} near-duplicates of the "
-                         f"frame before, {s.dark} windows too dark); a survey needs at least {fc.MIN_FRAMES}: "
-                         "use a clip in which the camera moves over the scene")
     keep = fc.thin(len(written), o.frames) if o.by_motion else list(range(len(written)))
     thinned = len(written) - len(keep)
     if thinned:
@@ -399,5 +442,6 @@ def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, windows
             "size": out_size, "settings": o.settings(),
             "stats": {"windows": s.windows, "kept": s.kept, "near_duplicates": s.duplicates,
                       "dark_windows": s.dark, "dark_frames": s.dark_frames, "thinned": thinned,
-                      "by": "motion" if o.by_motion else "time"},
+                      "by": "motion" if o.by_motion else "time",
+                      **({"moved": round(windows.moved, 4), "step": o.step} if o.by_motion else {})},
             "frames": written}

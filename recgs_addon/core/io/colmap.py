@@ -233,7 +233,12 @@ def _undistort(model_dir: Path, image_dir: Path, names: list[str], cache_dir: Pa
     cache_dir.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".undistort-{key}-", dir=cache_dir))
     try:
-        pycolmap.undistort_images(str(tmp), str(model_dir), str(image_dir), image_names=names)
+        level = pycolmap.logging.minloglevel
+        pycolmap.logging.minloglevel = 3   # COLMAP's line per image: the job says it undistorts, once
+        try:
+            pycolmap.undistort_images(str(tmp), str(model_dir), str(image_dir), image_names=names)
+        finally:
+            pycolmap.logging.minloglevel = level
         if not (tmp / "sparse").is_dir():
             raise SceneError(f"{model_dir}: pycolmap's undistortion produced no model in {tmp}")
         (tmp / "done").write_text(key)
