@@ -112,14 +112,17 @@ def bpy_session():
 
 
 def write_rendered_scene(root, *, n_views=8, width=48, height=36, n_gauss=300, seed=0, noise=0.02,
-                         heights=None, water=None):
+                         heights=None, water=None, lamp=None, downward=False):
     """A survey whose images are renders of known Gaussians (so training can fit them exactly).
 
     Ground-truth Gaussians lie on a bumpy patch z ~ 0 seen from cameras ~2.5 m above (or at
     ``heights[i]``); the COLMAP model gets the true poses and, as sparse points, the true centres
     plus ``noise`` metres. With ``water`` (coefficients as :meth:`Medium.values` gives them) the
     photos are the renders seen through it (the trainer's own water model) and ``clean/`` holds
-    the true colour. Returns the ground-truth GaussianSet.
+    the true colour; with ``lamp`` (a :class:`~recgs_addon.core.model.lamp.Lamp`) they are lit
+    by it (the trainer's own lamp model), before any water. ``downward``: the cameras look
+    straight down from a grid over the patch (a survey's rows) instead of at its centre from a
+    circle. Returns the ground-truth GaussianSet.
     """
     import pycolmap
     import torch
@@ -145,7 +148,14 @@ def write_rendered_scene(root, *, n_views=8, width=48, height=36, n_gauss=300, s
     for i in range(n_views):
         a = 2 * np.pi * i / n_views
         c = np.array([0.5 * np.cos(a), 0.4 * np.sin(a), 2.5 if heights is None else heights[i]])
-        R, t = look_at_pose(c, [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
+        if downward:
+            cols_ = int(np.ceil(np.sqrt(n_views)))
+            gy_, gx_ = divmod(i, cols_)
+            c[:2] = [-0.6 + 1.2 * gx_ / max(1, cols_ - 1), -0.5 + 1.0 * gy_ / max(1, (n_views - 1) // cols_)]
+            R = np.diag([1.0, -1.0, -1.0])
+            t = -R @ c
+        else:
+            R, t = look_at_pose(c, [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
         name = f"view_{i:03d}.png"
         im = pycolmap.Image(name=name, keypoints=np.zeros((0, 2)), camera_id=1, image_id=i + 1)
         rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
@@ -158,10 +168,19 @@ def write_rendered_scene(root, *, n_views=8, width=48, height=36, n_gauss=300, s
                          torch.tensor(view, dtype=torch.float32), torch.tensor(K, dtype=torch.float32),
                          width, height)
         rgb = out.rgb
+        if water is not None or lamp is not None:
+            write_image(root / "clean" / name, rgb.clamp(0, 1).numpy())
+        if lamp is not None:
+            from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
+            from recgs_addon.core.model.medium import Medium, ray_lengths
+
+            r = Medium.range_of(out.alpha, out.depth, ray_lengths(width, height, fx, fx, width / 2, height / 2))
+            with torch.no_grad():
+                g = lamp.gain(width, height, width / 2, height / 2, r).unsqueeze(-1)
+                rgb = linear_to_srgb((srgb_to_linear(rgb.clamp(0, 1)) * g).clamp(0, 1))
         if water is not None:
             from recgs_addon.core.model.medium import Medium, ray_lengths
 
-            write_image(root / "clean" / name, rgb.clamp(0, 1).numpy())
             with torch.no_grad():
                 rgb = Medium.from_values(water).see(rgb, out.alpha, out.depth,
                                                     ray_lengths(width, height, fx, fx, width / 2, height / 2))

@@ -157,7 +157,7 @@ def rec_cfg(**kw):
     """(trainer settings, caustic settings) of the tests' RecGS runs, with overrides ``kw``."""
     base = dict(iterations=2000, eval_every=50, log_every=50, holdout_every=5, compiled=False, mode="recgs",
                 densify_from=50, densify_every=50, densify_until=400, pyramid=(), warmup=400,
-                recurrence_steps=60, max_recurrences=15, caustic_k=5, estimator="lowpass")
+                recurrence_steps=60, max_recurrences=15, caustic_k=5, estimator="lowpass", caustics="on")
     base.update(kw)
     caustic = {k: base.pop(k) for k in list(base) if k in CausticConfig.__dataclass_fields__}
     return preset("default", **base), CausticConfig(**caustic)

@@ -32,7 +32,7 @@ def device_scene(tmp_path_factory):
 def test_eager_training_makes_no_tensor_off_the_models_device(device_scene, tmp_path, mode, strategy, estimator):
     cfg = preset("default", iterations=60, eval_every=20, log_every=20, holdout_every=4, compiled=False,
                  densify_from=10, densify_every=10, densify_until=50, pyramid=((10, 2),), strategy=strategy)
-    method = make_method(device_scene, cfg, CausticConfig(mode=mode, warmup=20, recurrence_steps=10,
+    method = make_method(device_scene, cfg, CausticConfig(mode=mode, warmup=20, recurrence_steps=10, caustics="on",
                                                           estimator=estimator))
     method.trainer.data.load_all(2)
     with torch.device("meta"):

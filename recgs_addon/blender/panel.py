@@ -102,6 +102,7 @@ class VIEW3D_PT_recgs_training(_RecGSPanel, bpy.types.Panel):
         sub.active = s.mode in CAUSTIC_MODES
         sub.prop(s, "caustic_k")
         col.prop(s, "medium")
+        col.prop(s, "lamp")
         if s.water:
             layout.row().prop(s, "water_view", expand=True)
         if not busy and not engine.engine_ready():

@@ -76,6 +76,7 @@ class RecGSSettings(bpy.types.PropertyGroup):
     max_side: _setting("max_side")
     caustic_k: _setting("caustic_k")
     medium: _setting("medium")
+    lamp: _setting("lamp")
     water_view: EnumProperty(name="Show", default="TRUE_COLOUR", update=_water_view,
                              description="Show the seabed in its true colour, or as seen underwater (the fitted "
                                          "water as the world's volume, in EEVEE and Cycles)",
@@ -156,7 +157,7 @@ SETTINGS = {
     "seed": _copy("seed"), "holdout_every": _copy("holdout_every"), "checkpoint_every": _copy("checkpoint_every"),
     "device": _unless_default("device"), "eager": _copy("eager"),
     "caustic_k": (lambda s: s.caustic_k if s.mode in CAUSTIC_MODES else None, _copy("caustic_k")[1]),
-    "images": _unless_default("images"), "medium": _unless_default("medium"),
+    "images": _unless_default("images"), "medium": _unless_default("medium"), "lamp": _unless_default("lamp"),
 }
 #: ``train`` options (argparse dests) that the settings hold.
 SETTINGS_OPTIONS = tuple(SETTINGS)

@@ -117,12 +117,13 @@ def run_train(args) -> int:
                          budget=_parse_budget(args.budget),
                          compiled=False if args.eager else (True if args.compile_first else None),
                          keep_best=False if args.keep_last else None,
-                         strategy=args.density, prune_weight=args.prune_weight, medium=args.medium)
+                         strategy=args.density, prune_weight=args.prune_weight, medium=args.medium,
+                         lamp=args.lamp)
             caustic = dict(mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
                            caustic_k=args.caustic_k, caustic_model=args.caustic_model, warmup=args.warmup,
                            recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,
                            recurrence_tol=args.recurrence_tol, robust_k=args.robust_k,
-                           estimator=args.estimator, consensus_stat=args.consensus_stat,
+                           estimator=args.estimator, caustics=args.caustics, consensus_stat=args.consensus_stat,
                            lf_lambda=args.lf_lambda, lf_tau=args.lf_tau, fit_loss=args.fit_loss,
                            gain_restore=None if args.gain_restore is None else args.gain_restore == "on")
             ccfg = CausticConfig(**{k: v for k, v in caustic.items() if v is not None})
@@ -184,12 +185,19 @@ def _plan(args, method, trainer):
     limit = None if args.max_memory is None else int(args.max_memory * 2 ** 30)
     if limit is not None and not limit > 0:
         raise RecGSError(f"--max-memory must be a number of gigabytes above 0, got {args.max_memory}")
-    plan = plan_run(trainer, method.state_bytes(), limit, caustics=method.ccfg.mode in CAUSTIC_MODES)
+    plan = plan_run(trainer, method.state_bytes(), limit,
+                    caustics=method.ccfg.mode in CAUSTIC_MODES and not getattr(method, "dropped", False))
     lines = plan.lines()
     if trainer.cfg.medium != "off":
         lines.append(f"water: {'modelled' if trainer.medium is not None else 'not modelled'} "
                      f"({trainer.medium_info['reason']})")
-    if getattr(method, "estimator_why", None):
+    light = getattr(method, "light", None)
+    if light is not None:
+        lines.append(f"light: {light['reason']}" + ("" if light["caustics"] else "; training as plain 3DGS"))
+    if trainer.cfg.lamp != "off":
+        lines.append(f"lamp: {'modelled' if trainer.lamp is not None else 'not modelled'} "
+                     f"({trainer.lamp_info['reason']})")
+    if getattr(method, "estimator_why", None) and not getattr(method, "dropped", False):
         lines.append(f"caustic estimator: {method.ccfg.estimator} ({method.estimator_why})")
     emit("plan", lines=lines, **plan.summary())
     for line in lines:
@@ -276,12 +284,12 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
         "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
         "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"),
         "psnr_test_captured": final.get("psnr_captured"), "view_support": support, "coverage": coverage,
-        "medium": trainer.medium_summary(),
+        "medium": trainer.medium_summary(), "lamp": trainer.lamp_summary(),
         "coverage_sparse": {"median_views": plan.views_per_point, "median_passes": plan.passes_per_point},
         "plan": plan.summary(), **outputs,
         "compile": trainer.compiler.summary(), "skipped_steps": trainer.skipped_steps,
         "density": dict(trainer.density_totals),
-        "history": trainer.history, "recurrences": [], **method.summary(),
+        "history": trainer.history, "recurrences": [], "light": trainer.light, **method.summary(),
         "config": {**asdict(trainer.cfg), **asdict(ccfg)},
     }
     from ..core.io.atomic import atomic_path

@@ -26,11 +26,15 @@ MODES = tuple(MODE_INFO)
 CAUSTIC_MODES = ("recgs", "filter2d", "joint")
 #: How RecGS estimates each view's caustics (recgs.py).
 ESTIMATORS = ("auto", "lowpass", "passes", "consensus", "lightfield", "likelihood")
+#: Whether RecGS looks for caustics before removing any (light.py): ``auto`` removes them only
+#: where the survey shows light that moves over the seabed; ``on`` runs the loop regardless.
+FIND_CAUSTICS = ("auto", "on")
 
 
 @dataclass
 class CausticConfig:
     mode: str = "3dgs"
+    caustics: str = "auto"               # recgs: auto = only where the survey shows caustics (light.py) | on
     caustic_k: int = 0                   # low-pass block size (odd; the paper: 9); 0 = from the residual spectrum
     caustic_dc: bool = False             # recgs: keep C's DC term (the paper); False: C has zero mean per view
     caustic_model: str = "additive"      # additive: I - C (paper) | multiplicative: I / exp(C_log)
@@ -60,7 +64,8 @@ class CausticConfig:
     gain_restore: bool = True            # recgs with trimming: rescale colours so renders keep the photos' mean light
 
     #: Settings added since a release, with the value that reproduces runs saved before them.
-    _BEFORE = {"caustic_dc": True, "robust_k": 0.0, "gain_restore": False, "estimator": "lowpass", "fit_loss": "l1"}
+    _BEFORE = {"caustic_dc": True, "robust_k": 0.0, "gain_restore": False, "estimator": "lowpass", "fit_loss": "l1",
+               "caustics": "on"}
 
     @classmethod
     def from_dict(cls, d: dict) -> "CausticConfig":
@@ -78,6 +83,8 @@ class CausticConfig:
             raise RecGSError(f"caustic filter size must be a positive odd number (or 0 = auto), got {self.caustic_k}")
         if self.caustic_model not in ("additive", "multiplicative"):
             raise RecGSError(f"unknown caustic model {self.caustic_model!r} (additive or multiplicative)")
+        if self.caustics not in FIND_CAUSTICS:
+            raise RecGSError(f"unknown caustics setting {self.caustics!r} (choose from {', '.join(FIND_CAUSTICS)})")
         if self.estimator not in ESTIMATORS:
             raise RecGSError(f"unknown caustic estimator {self.estimator!r} (choose from {', '.join(ESTIMATORS)})")
         if self.estimator == "consensus" and self.caustic_model != "additive":

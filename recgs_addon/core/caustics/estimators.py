@@ -60,7 +60,7 @@ class Estimates:
         during the warm-up (it is plain 3DGS and decides as plain 3DGS does: scored against
         compensated photos, growth went on to 3x the Gaussians, half of them carrying no
         view), the photo with its caustics compensated once C is in use."""
-        if self.stage == "warmup":
+        if self.stage == "warmup" or self.dropped:   # plain 3DGS decides as plain 3DGS
             return image
         if self.references is not None and index in self.references:
             return self.references[index].float()

@@ -57,6 +57,7 @@ from ..train.trainer import Progress, Trainer
 from . import fft_filter, likelihood
 from .config import CausticConfig
 from . import estimators
+from .estimate import compensate_caustics
 from .estimators import Estimates, choose_estimator
 from .method import Method
 from .robust import TrimmedTargets, apply_gain, colour_gain
@@ -85,6 +86,18 @@ def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
         ok = dn < 0 and dp > -HARM_DB
         return ok, f"likelihood {recgs['nll']:.4f} against {plain['nll']:.4f}, PSNR {dp:+.2f} dB"
     return dp > -TIE_DB, f"PSNR against the held-out photos {dp:+.2f} dB"
+
+
+#: Filter sizes of the relit score (:func:`relit_psnr`) the end-of-run candidates get.
+RELIT_K = (9, 25)
+
+
+def relit_psnr(render: torch.Tensor, photo: torch.Tensor, k: int) -> float:
+    """PSNR of ``render`` against ``photo`` once the light that differs between them at the
+    ``k x k`` lowest frequencies (their log ratio, low-passed, its mean kept) is taken out of
+    the photo: a score of the seabed's texture that no light over the photo (caustics' broad
+    part, exposure, a lamp's cone) moves, and that needs no caustic estimate."""
+    return psnr(render, compensate_caustics(photo, render.clamp(0, 1), k, "multiplicative", dc=True).clamp(0, 1))
 
 
 #: The share of a time limit the warm-up (plain 3DGS) takes at most, by estimator. The low-pass
@@ -147,6 +160,11 @@ class RecGS(Estimates, Method):
         #: frames (what held-out renders are scored against once C is in use, and what the
         #: end-of-run choice judges by)
         self.references: Optional[dict[int, torch.Tensor]] = None
+        #: what light the survey shows (``light.py``; ``LightFinding.summary()``), looked at
+        #: before anything is removed
+        self.light: Optional[dict] = trainer.light if ccfg.caustics == "auto" else None
+        if self.light is not None and not self.light["caustics"]:
+            self._drop(f"{self.light['reason']}: trained as plain 3DGS", restore=False)
 
     @property
     def stage(self) -> str:
@@ -294,9 +312,11 @@ class RecGS(Estimates, Method):
             if "reference_score" not in self.plain:
                 self.plain["reference_score"] = self._reference_psnr(self.plain)
             score, plain = self._reference_psnr(), self.plain["reference_score"]
+            against = "references"
         else:
             score, plain = self.trainer.heldout_psnr(), (self.plain or {}).get("score")
-        self.rec_history[-1]["psnr_heldout"] = score
+            against = "captured"
+        self.rec_history[-1].update(psnr_heldout=score, heldout_vs=against)
         harm = self._harm(score, plain)
         self.misses = self.misses + 1 if harm else 0
         if not harm or self.misses < self.ccfg.recurrence_patience:
@@ -406,11 +426,13 @@ class RecGS(Estimates, Method):
         if not ids:
             return out
         with tr.using(snap):
-            cap, ref, nll, gt = [], [], [], []
+            cap, ref, nll, gt, relit = [], [], [], [], {k: [] for k in RELIT_K}
             for i in ids:
                 rgb, true = tr.render_pair(i)
                 photo = self.data.view(i, 1)[1]
                 cap.append(psnr(rgb, photo))
+                for k in RELIT_K:
+                    relit[k].append(relit_psnr(rgb, photo, k))
                 if self.references is not None and i in self.references:
                     ref.append(psnr(rgb, self.references[i].float()))
                 if self.gain_model is not None:
@@ -420,6 +442,8 @@ class RecGS(Estimates, Method):
                 if g is not None:
                     gt.append(psnr(true, g))
         out["psnr_captured"] = round(sum(cap) / len(cap), 4)
+        for k, v in relit.items():
+            out[f"psnr_relit{k}"] = round(sum(v) / len(v), 4)
         if ref:
             out["psnr_reference"] = round(sum(ref) / len(ref), 4)
         if nll:
@@ -463,7 +487,7 @@ class RecGS(Estimates, Method):
                 "candidates": self.candidates, "caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,
                 "psnr_heldout_plain": (self.plain or {}).get("score"), "colour_gain": self.gain,
                 "light_gain": [round(float(x), 4) for x in self.light_gain] if self._lightfield else None,
-                "passes": self.pass_info}
+                "passes": self.pass_info, "light": self.light}
 
     # --- checkpoints -----------------------------------------------------------------------
     def state_dict(self) -> dict:

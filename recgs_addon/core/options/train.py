@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..caustics.config import ESTIMATORS, MODE_INFO, CausticConfig
-from ..train.config import MEDIUM_MODES, TrainConfig
+from ..caustics.config import ESTIMATORS, FIND_CAUSTICS, MODE_INFO, CausticConfig
+from ..train.config import LAMP_MODES, MEDIUM_MODES, TrainConfig
 from ..train.strategies import DEFAULT_STRATEGY, STRATEGIES, CloneSplit
 from .scene import EAGER, IMAGE_FOLDER, SCENE_DIR
 from .table import Option, OptionTable, Setting
@@ -18,6 +18,13 @@ _MEDIUM = {
                      "changes the photos measurably"),
     "on": ("On", "Always model the water"),
     "off": ("Off", "Train on the photos' colours as they are"),
+}
+#: What each lamp setting does (the sidebar's Lamp).
+_LAMP = {
+    "auto": ("Auto", "Model light fixed to the camera (a lamp's cone and fall-off, vignetting) where the survey "
+                     "shows it"),
+    "on": ("On", "Always model light fixed to the camera"),
+    "off": ("Off", "Train on the photos' light as it is"),
 }
 _PRESETS = (("default", "Default", "Lean schedule: grows only what the scene needs"),
             ("vanilla", "Vanilla", "INRIA's 30k-iteration schedule, only to compare with it"))
@@ -60,6 +67,10 @@ TRAIN_OPTIONS = OptionTable([
                        f"Gaussians so that they hold the seabed's true colour (default {TrainConfig.medium})",
            choices=tuple((m, *_MEDIUM[m]) for m in MEDIUM_MODES),
            setting=Setting("Water", default=TrainConfig.medium)),
+    Option("--lamp", "Light fixed to the camera (a lamp's or strobe's cone and its fall-off with range, the lens's "
+                     "vignetting), fitted with the Gaussians so that they hold the seabed evenly lit (default "
+                     f"{TrainConfig.lamp})", choices=tuple((m, *_LAMP[m]) for m in LAMP_MODES),
+           setting=Setting("Lamp", default=TrainConfig.lamp)),
     Option("--downscale", "Train at the photo size divided by this (after the long side's cap): 2 or 4 for "
                           "quick trials", type=int, default=TrainConfig.downscale,
            setting=Setting("Downscale", minimum=1, maximum=32)),
@@ -117,6 +128,10 @@ TRAIN_OPTIONS = OptionTable([
            type=int, group=_CAUSTICS),
     Option("--recurrence-tol", "recgs: stop when the relative change of C falls below this (default "
                                f"{CausticConfig.recurrence_tol})", type=float, group=_CAUSTICS),
+    Option("--caustics", "recgs: auto (default) removes caustics only where the survey shows light that moves "
+                         "over the seabed between frames (a lamp on the camera, vignetting or exposure changes are "
+                         "not caustics: such a survey trains as plain 3DGS, and the run says so); on: run the loop "
+                         "whatever the survey shows", choices=FIND_CAUSTICS, group=_CAUSTICS),
     Option("--estimator", "recgs: auto (default) picks passes where the survey sees each seabed point in a median "
                           "of 2 or more independent passes and lowpass below; passes: each frame's target from the "
                           "other frames that saw each point (the floor of their light, over the whole band; the "

@@ -2,9 +2,10 @@
 
 * ``renders/NAME.png`` (+ ``.exr``): held-out views rendered by the final model (in the
   seabed's true colour where the run modelled the water);
-* where the run modelled the water: ``medium.json`` (the fitted coefficients) and
-  ``truecolour/NAME.png`` (+ ``.exr``): each training photo (caustic-free in the caustic modes)
-  taken out of the water along the model's range, in the seabed's true colour;
+* where the run modelled the water: ``medium.json`` (the fitted coefficients); where it modelled a
+  lamp on the camera: ``lamp.json`` (its terms); with either, ``truecolour/NAME.png`` (+ ``.exr``):
+  each training photo (caustic-free in the caustic modes) taken out of the water and the lamp's
+  light along the model's range: the seabed's true colour, evenly lit;
 * caustic modes: ``caustic/NAME.exr`` (the additive caustic estimate C of each training view,
   float, signed) and ``decaustic/NAME.png`` (+ ``.exr``): the caustic-free image ``I - C``
   (clipped to [0, 1] in the PNG only).
@@ -25,6 +26,9 @@ from ..io.images import write_image
 from ..model.colour import linear_to_srgb, srgb_to_linear
 from ..model.medium import Medium, out_of_water
 from ..train.losses import psnr
+
+#: The most an evenly lit photo brightens a pixel the lamp left dark (its noise grows with it).
+MAX_GAIN = 20.0
 
 
 def _stem(name: str) -> Path:
@@ -59,7 +63,7 @@ def write_outputs(method, out: Path) -> dict:
         write_image(out / "decaustic" / f"{stem}.exr", free.cpu().numpy())
         if gt is not None:
             cleaned.append(psnr(torch.clamp(free, 0, 1), gt))
-    if trainer.medium is not None:
+    if trainer.forms_image:
         result.update(write_true_colour(method, out))
     if captured:
         result["psnr_captured_gt"] = float(np.mean(captured))
@@ -74,9 +78,14 @@ def true_colour_photo(trainer, index: int, image: torch.Tensor) -> torch.Tensor:
     at each pixel (:func:`~..model.medium.out_of_water`, the direct signal's gain capped)."""
     out = trainer.render_output(index, seen=False)
     cam = trainer.data.view(index, 1)[0]
-    rng = Medium.range_of(out.alpha, out.depth, trainer.ray_len(cam)).cpu().numpy()
-    lin = srgb_to_linear(image.clamp(0, 1)).cpu().numpy()
-    true = out_of_water(lin, rng, trainer.medium.values())
+    rng_t = Medium.range_of(out.alpha, out.depth, trainer.ray_len(cam))
+    rng = rng_t.cpu().numpy()
+    true = srgb_to_linear(image.clamp(0, 1)).cpu().numpy()
+    if trainer.medium is not None:
+        true = out_of_water(true, rng, trainer.medium.values())
+    if trainer.lamp is not None:   # evenly lit: the lamp's light taken out, its gain capped as the water's
+        gain = torch.exp(trainer.lamp_log_gain_of(cam, rng_t)).cpu().numpy()[..., None]
+        true = true / np.maximum(gain, 1.0 / MAX_GAIN)
     return linear_to_srgb(torch.from_numpy(true.astype(np.float32)))
 
 
@@ -85,12 +94,19 @@ def write_true_colour(method, out: Path) -> dict:
     truth where the survey has it."""
     trainer = method.trainer
     data = trainer.data
-    summary = trainer.medium_summary()
-    with atomic_path(out / "medium.json", "medium") as tmp:
-        tmp.write_text(json.dumps({
-            "model": "seen = J exp(-attenuation r) + veil (1 - exp(-backscatter r)), per linear sRGB channel, "
-                     "r the range along the ray in scene units (metres where the survey's poses are in metres)",
-            **summary}, indent=2))
+    if trainer.medium is not None:
+        with atomic_path(out / "medium.json", "medium") as tmp:
+            tmp.write_text(json.dumps({
+                "model": "seen = J exp(-attenuation r) + veil (1 - exp(-backscatter r)), per linear sRGB channel, "
+                         "r the range along the ray in scene units (metres where the survey's poses are in metres)",
+                **trainer.medium_summary()}, indent=2))
+    if trainer.lamp is not None:
+        with atomic_path(out / "lamp.json", "lamp") as tmp:
+            tmp.write_text(json.dumps({
+                "model": "seen = J L, log L = sum_k pattern[k] x^i y^j + fall log(r / r0) + attenuation (r - r0), in "
+                         "linear light; x, y the pixel's position from the principal point in half-widths of the "
+                         "image, terms (i, j) with 1 <= i + j <= 4 in the order (1,0), (0,1), (2,0), (1,1), (0,2), ...; "
+                         "r the range along the ray in scene units", **trainer.lamp_summary()}, indent=2))
     scores = []
     for i in data.train_ids:
         free = method.decaustic_image(i)

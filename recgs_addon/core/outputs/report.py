@@ -51,6 +51,9 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
             ("training images as captured, PSNR vs ground truth (dB)", _f(metrics.get("psnr_captured_gt"))),
             ("caustic-free training images, PSNR vs ground truth (dB)", _f(metrics.get("psnr_decaustic_gt"))),
             ("true-colour training images, PSNR vs ground truth (dB)", _f(metrics.get("psnr_truecolour_gt"))),
+            ("light", (metrics.get("light") or {}).get("reason")),
+            ("lamp", (metrics.get("lamp") or {}).get("reason") if (metrics.get("lamp") or {}).get("mode", "off") != "off"
+             else None),
             ("water", (metrics.get("medium") or {}).get("reason")),
             ("caustic estimator", metrics.get("estimator") and
              f"{metrics['estimator']} ({metrics.get('estimator_why', '')})"),
@@ -117,6 +120,7 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
             lines += ["", f"Training removed {needless:,} Gaussians that no view needed (under "
                       f"{cfg.get('density', {}).get('prune_weight', 0.25):g} pixel of every view that drew them) "
                       "and grew others where the error was."]
+    lines += _light_section(metrics.get("light"), cfg.get("mode"), metrics.get("lamp") or {})
     lines += _water_section(metrics.get("medium") or {})
     lines += _water_example(out, rd, method)
     rec = metrics.get("recurrences", [])
@@ -126,10 +130,14 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
                         title="Change of the caustic estimate", xlabel="recurrence", ylabel="relative change",
                         log_y=True)
         lines += ["", "## Recurrences", "", "![C change](report/c_change.png)", "",
-                  "| recurrence | iteration | seconds | change of C | mean abs C | held-out PSNR vs captured "
-                  "after its steps (dB) |", "|---|---|---|---|---|---|"]
+                  "| recurrence | iteration | seconds | change of C | mean abs C | held-out PSNR after its steps (dB) "
+                  "| scored against |", "|---|---|---|---|---|---|---|"]
+        against = {"references": "the held-out frames' references from the passes",
+                   "captured": "the held-out photos as captured"}
         lines += [f"| {r['recurrence']} | {r['iteration']} | {r['elapsed']} | {r['c_change']:.4f} | "
-                  f"{r['mean_abs_c']:.4f} | {_f(r.get('psnr_heldout'))} |" for r in rec]
+                  f"{r['mean_abs_c']:.4f} | {_f(r.get('psnr_heldout'))} | "
+                  f"{against.get(r.get('heldout_vs'), '-') if r.get('psnr_heldout') is not None else '-'} |"
+                  for r in rec]
     data = None if method is None else method.data
     if data is not None and data.train_ids and method.decaustic_image(data.train_ids[0]) is not None:
         ids = data.train_ids[:: max(1, len(data.train_ids) // examples)][:examples]
@@ -158,6 +166,33 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
     with atomic_path(path, "report") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     return path
+
+
+def _light_section(light: Optional[dict], mode: Optional[str], lamp: dict) -> list[str]:
+    """What light the survey showed before training (core/caustics/light.py), and what the run
+    did with it."""
+    if not light or not light.get("pairs"):
+        return []
+    pct = lambda v: f"{100 * (math.exp(v) - 1):.0f} %"   # noqa: E731
+    if mode == "recgs":
+        did = ("Caustics were found, and the run removed them." if light["caustics"] else
+               "No caustics were found, so the run trained plain 3DGS on the photos.")
+    else:
+        did = ("Caustics were found: `--mode recgs` (the panel's RecGS) removes them." if light["caustics"] else
+               "No caustics were found.")
+    if lamp.get("kept"):
+        did += " The light fixed to the camera was modelled with the Gaussians, which hold the seabed evenly lit."
+    return ["", "## Light: caustics, or light fixed to the camera", "",
+            f"Before training, {light['pairs']} pairs of frames that see the same seabed were compared: "
+            "how a seabed point's brightness changes from one frame to the other, split into light fixed to "
+            "the camera (a pattern over the image and a fall-off with range: a lamp, vignetting), each frame's "
+            "exposure, and light that moves over the seabed (caustics). " + did, "",
+            "| part of the light | spread between frames |", "|---|---|",
+            f"| moving over the seabed (caustics) | {pct(light['moving'])} ({100 * light['share']:.0f} % of the "
+            "differences) |",
+            f"| fixed to the camera (over the frame) | {pct(light['camera'])} |",
+            f"| exposure (frame to frame) | {pct(light['exposure'])} |", "",
+            f"{light['reason'][0].upper() + light['reason'][1:]}."]
 
 
 def _water_section(medium: dict) -> list[str]:

@@ -24,6 +24,9 @@ from .strategies import DEFAULT_STRATEGY, STRATEGIES, Strategy, default_strategy
 #: The water model's settings (core/train/water.py): auto fits it where the survey sees each
 #: point from several ranges and keeps it where it changes the photos measurably.
 MEDIUM_MODES = ("auto", "on", "off")
+#: The lamp's settings (light fixed to the camera, core/train/lamp.py): auto models it where the
+#: survey shows it (core/caustics/light.py).
+LAMP_MODES = ("auto", "on", "off")
 
 
 @dataclass
@@ -75,6 +78,8 @@ class TrainConfig:
     compiled: Optional[bool] = None      # rasterizer through torch.compile: None = when available
     medium: str = "auto"                 # water (attenuation, backscatter) fitted with the Gaussians:
                                          # "auto" (where the survey can tell it from colour), "on", "off"
+    lamp: str = "auto"                   # light fixed to the camera (a lamp's cone and fall-off, vignetting)
+                                         # fitted with the Gaussians: "auto" (where the survey shows it), "on", "off"
 
     @property
     def strategy(self) -> str:
@@ -88,6 +93,7 @@ class TrainConfig:
         dens = strategy_from_dict(d["density"] if isinstance(d.get("density"), dict) else d)
         d = {k: v for k, v in d.items() if k in cls.__dataclass_fields__ and k != "density"}
         d.setdefault("max_side", 0)   # checkpoints from before the cap trained at the photos' size
+        d.setdefault("lamp", "off")   # ... and from before the lamp modelled none
         return cls(**{**d, "density": dens, "pyramid": tuple(tuple(x) for x in d["pyramid"]),
                       "background": tuple(d["background"])})
 
@@ -107,6 +113,8 @@ class TrainConfig:
         self.density.validate()
         if self.medium not in MEDIUM_MODES:
             raise RecGSError(f"unknown medium setting {self.medium!r} (choose {', '.join(MEDIUM_MODES)})")
+        if self.lamp not in LAMP_MODES:
+            raise RecGSError(f"unknown lamp setting {self.lamp!r} (choose {', '.join(LAMP_MODES)})")
         if self.holdout_every < 0:
             raise RecGSError(f"holdout every must be 0 (hold out none) or a positive number, got {self.holdout_every}")
         if not 0 <= self.seed < 2 ** 64:   # what numpy's and torch's generators take

@@ -30,18 +30,24 @@ class EvaluationMixin:
 
     # --- snapshots (a method that keeps or restores a model uses these) -----------------
     def snapshot(self) -> dict:
-        """A copy of the model: parameters, the active SH degree and the water's coefficients."""
+        """A copy of the model: parameters, the active SH degree, the water's coefficients and
+        the lamp's terms."""
         return {"params": {n: v.detach().clone() for n, v in self.params.items()}, "sh_degree": self.sh_degree,
-                "medium": None if self.medium is None else self.medium.raw.detach().clone()}
+                "medium": None if self.medium is None else self.medium.raw.detach().clone(),
+                "lamp": None if self.lamp is None else self.lamp.raw.detach().clone()}
 
-    def _swap_medium(self, raw) -> Optional[torch.Tensor]:
-        """Put ``raw`` into the water's coefficients; returns what was there."""
-        if self.medium is None or raw is None:
-            return None
-        old = self.medium.raw.detach().clone()
-        with torch.no_grad():
-            self.medium.raw.copy_(raw)
-        return old
+    def _swap_medium(self, raw, lamp_raw=None) -> tuple:
+        """Put ``raw`` into the water's coefficients and ``lamp_raw`` into the lamp's terms
+        (each where both exist); returns what was there."""
+        old = []
+        for model, new in ((self.medium, raw), (self.lamp, lamp_raw)):
+            if model is None or new is None:
+                old.append(None)
+                continue
+            old.append(model.raw.detach().clone())
+            with torch.no_grad():
+                model.raw.copy_(new)
+        return tuple(old)
 
     @contextlib.contextmanager
     def using(self, snap: dict):
@@ -49,12 +55,12 @@ class EvaluationMixin:
         trainer's own parameters, optimiser and statistics untouched)."""
         saved = self.params, self.sh_degree
         self.params, self.sh_degree = snap["params"], snap["sh_degree"]
-        saved_medium = self._swap_medium(snap.get("medium"))
+        saved_medium = self._swap_medium(snap.get("medium"), snap.get("lamp"))
         try:
             yield self
         finally:
             self.params, self.sh_degree = saved
-            self._swap_medium(saved_medium)
+            self._swap_medium(*saved_medium)
 
     def restore(self, snap: dict) -> None:
         """Go back to a ``snapshot()``: its parameters with fresh Adam moments and gradient
@@ -63,7 +69,7 @@ class EvaluationMixin:
         self.optimizer = self._make_optimizer()
         self.stats = density.GradientStats.zeros(self.params["means"].shape[0], self.device)
         self.sh_degree = snap["sh_degree"]
-        self._swap_medium(snap.get("medium"))
+        self._swap_medium(snap.get("medium"), snap.get("lamp"))
 
     def restart_plateau(self, forget_best: bool = False) -> None:
         """Start counting evaluations without gain afresh (``forget_best``: and the best score
@@ -85,7 +91,7 @@ class EvaluationMixin:
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
                      background=self._background(), compiled=self.compiler.compiled())
-        if seen and self.medium is not None:
+        if seen and self.forms_image:
             out = out._replace(rgb=self.as_seen(out, cam))
         dt = time.perf_counter() - t
         self._render_s = dt if self._render_s is None else 0.8 * self._render_s + 0.2 * dt

@@ -35,6 +35,7 @@ from .coverage import sparse_coverage
 from .data import TrainData, resolve_image_dir, view_tensors
 from .density_control import DensityMixin
 from .evaluation import EvaluationMixin
+from .lamp import LampMixin
 from .losses import training_loss
 from .objective import Objective
 from .progress import Progress, ProgressMixin
@@ -53,16 +54,18 @@ class TrainingDiverged(RecGSError):
     """NaN or Inf in the loss, the parameters or the optimiser's moments."""
 
 
-class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
+class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin, LampMixin):
     """One training run. ``run()`` until done or told to stop; ``state_dict()`` to checkpoint.
 
     What it fits is its :class:`~.objective.Objective` (``set_objective``): the photos by
     default. A method that changes the objective as training goes (core/caustics/) drives the
     trainer in segments with ``train_until`` and sets ``label`` to name its phase."""
 
-    def __init__(self, data: TrainData, cfg: TrainConfig, gaussians: Optional[GaussianSet] = None):
+    def __init__(self, data: TrainData, cfg: TrainConfig, gaussians: Optional[GaussianSet] = None,
+                 light: Optional[dict] = None):
         """``cfg`` as checked by :meth:`TrainConfig.validate` (:func:`make_trainer` checks it
-        before reading the survey)."""
+        before reading the survey). ``light``: what the survey's light was found to be before
+        training (core/caustics/light.py, ``LightFinding.summary()``), which starts the lamp."""
         self.data, self.cfg = data, cfg
         self.objective: Objective = Objective()
         self.objective_optimizer: Optional[torch.optim.Adam] = None
@@ -74,6 +77,9 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         torch.manual_seed(cfg.seed)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.np_rng = np.random.default_rng(cfg.seed)
+        #: what the survey's light was found to be before training (or None)
+        self.light = light
+        self._init_lamp(light)   # light fixed to the camera, where the survey shows it (lamp.py)
         self._init_medium()   # the water, where the survey can tell it (water.py)
         if gaussians is None:   # from the points' true colours (the photos' where there is no water)
             gaussians = init_from_points(data.scene.points, self.true_point_colours(), sh_degree=0)
@@ -214,7 +220,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (p["sh_dc"], p["sh_rest"]),
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
                      background=self._background(), compiled=path, gather=rg, weights=weights)
-        if self.medium is not None:   # fit the photos as seen through the water
+        if self.forms_image:   # fit the photos as the lamp lit them and the water showed them
             out = out._replace(rgb=self.as_seen(out, cam))
         target, weight = self.objective.target(index, img, out.rgb.detach())
         loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight,
@@ -274,6 +280,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
             self.objective_optimizer.step()
             self.objective_optimizer.zero_grad(set_to_none=True)
         self._medium_step()
+        self._lamp_step()
         self.step += 1
         if self.densifying() and self.step >= c.densify_from and self.step % c.densify_every == 0:
             self.densify()
@@ -322,6 +329,8 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
                                        f"{self.step}")
         if self.medium is not None and not bool(torch.isfinite(self.medium.raw).all()):
             raise TrainingDiverged(f"training diverged: the water's coefficients hold NaN/Inf at step {self.step}")
+        if self.lamp is not None and not bool(torch.isfinite(self.lamp.raw).all()):
+            raise TrainingDiverged(f"training diverged: the lamp's terms hold NaN/Inf at step {self.step}")
         for group in self.optimizer.param_groups:
             for p in group["params"]:
                 for key, moment in self.optimizer.state.get(p, {}).items():
@@ -413,7 +422,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
             "objective_optimizer": None if self.objective_optimizer is None else self.objective_optimizer.state_dict(),
             "last_densify": self.last_densify, "density_totals": dict(self.density_totals),
             "compile_stall": self.compile_stall, "plateau_step": self.plateau_step,
-            "medium": self._medium_state(),
+            "medium": self._medium_state(), "lamp": self._lamp_state(),
             "best": None if self.best is None else {
                 **self.best, "params": {n: v.detach().cpu() for n, v in self.best["params"].items()}},
         }
@@ -446,6 +455,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin):
         self._stall_measured = False   # this process's own first compiled step adds to it
         self.best = s.get("best")
         self._load_medium_state(s.get("medium"))
+        self._load_lamp_state(s.get("lamp"))
         if self.objective_optimizer is not None and s.get("objective_optimizer") is not None:
             self.objective_optimizer.load_state_dict(s["objective_optimizer"])
         # limits are checked again against this run's settings (a resume may raise them)
@@ -471,10 +481,17 @@ def auto_budget(data: TrainData, cfg: TrainConfig) -> Optional[int]:
 
 
 def make_trainer(scene_dir: str | Path, cfg: TrainConfig, images: Optional[str | Path] = None,
-                 gaussians: Optional[GaussianSet] = None, gt_images: Optional[str | Path] = None) -> Trainer:
+                 gaussians: Optional[GaussianSet] = None, gt_images: Optional[str | Path] = None,
+                 light: Optional[dict] = None) -> Trainer:
     """Load a survey and build its trainer; all input checks happen here, before any work.
     ``images``: the folder to train on (default ``SCENE/images``); ``gt_images``: a folder of
-    ground-truth images with the same names, for scoring only."""
+    ground-truth images with the same names, for scoring only; ``light``: see :class:`Trainer`."""
+    return Trainer(load_data(scene_dir, cfg, images, gt_images), cfg, gaussians, light)
+
+
+def load_data(scene_dir: str | Path, cfg: TrainConfig, images: Optional[str | Path] = None,
+              gt_images: Optional[str | Path] = None) -> TrainData:
+    """Load a survey for training (:func:`make_trainer`'s checks and reading, without the trainer)."""
     cfg.validate()
     scene_dir = Path(scene_dir)
     image_dir = None
@@ -486,5 +503,4 @@ def make_trainer(scene_dir: str | Path, cfg: TrainConfig, images: Optional[str |
         raise RecGSError(f"{scene_dir / 'images'}: image folder is empty")
     scene = load_scene(scene_dir, image_dir=image_dir)
     gt_scene = load_scene(scene_dir, image_dir=resolve_image_dir(scene_dir, gt_images)) if gt_images is not None else None
-    data = TrainData(scene, cfg.downscale, cfg.holdout_every, cfg.device, gt_scene=gt_scene, max_side=cfg.max_side)
-    return Trainer(data, cfg, gaussians)
+    return TrainData(scene, cfg.downscale, cfg.holdout_every, cfg.device, gt_scene=gt_scene, max_side=cfg.max_side)

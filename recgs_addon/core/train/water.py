@@ -194,6 +194,7 @@ class MediumMixin:
                                           "cannot be told from the seabed's colour")
             return
         _sample_colours(self.data, obs)
+        self._unlit(obs)
         fit = fit_from_points(obs, prof["median_range"], device=self.device)
         gain = 1.0 - fit["error_water"] / max(fit["error_plain"], 1e-9)
         self.medium_info.update(prefit={k: round(fit[k], 3) if isinstance(fit[k], float) else fit[k]
@@ -213,6 +214,22 @@ class MediumMixin:
                                 reason=f"water explains {100 * gain:.0f} % of the sparse points' colour change "
                                        f"from view to view and changes the photos by {fit['effect_levels']:.1f} "
                                        "levels of 255")
+
+    def _unlit(self, obs: dict) -> None:
+        """The observations' colours with the lamp's light taken out (where the run models a
+        lamp): its fall-off with range is not the water's attenuation."""
+        lamp = getattr(self, "lamp", None)
+        if lamp is None or not len(obs["colour"]):
+            return
+        xs, ys = [], []
+        for _, cam, _, u, v, _ in obs["views"]:
+            xs.append((u - cam.cx) / (0.5 * cam.width))
+            ys.append((v - cam.cy) / (0.5 * cam.width))
+        with torch.no_grad():
+            g = torch.exp(lamp.log_gain_at(*(torch.as_tensor(a, dtype=torch.float32, device=lamp.raw.device)
+                                             for a in (np.concatenate(xs), np.concatenate(ys), obs["range"]))))
+        lin = srgb_to_linear(torch.from_numpy(obs["colour"])) / g.cpu().unsqueeze(-1)
+        obs["colour"] = linear_to_srgb(lin.clamp(0.0, 1.0)).numpy()
 
     def true_point_colours(self) -> np.ndarray:
         """(M, 3) uint8 colours of the survey's sparse points without the water: those fitted
@@ -238,12 +255,24 @@ class MediumMixin:
             self._ray_len[key] = ray_lengths(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, self.device)
         return self._ray_len[key]
 
+    @property
+    def forms_image(self) -> bool:
+        """The photos are modelled as more than the seabed's colour: through the water, or as a
+        lamp on the camera lit them (core/train/lamp.py)."""
+        return self.medium is not None or getattr(self, "lamp", None) is not None
+
     def as_seen(self, out, cam) -> torch.Tensor:
-        """The render ``out`` of camera ``cam`` as the camera sees it through the water (its
-        ``rgb`` unchanged without a medium)."""
-        if self.medium is None:
+        """The render ``out`` of camera ``cam`` as the camera sees it: lit by the lamp and
+        through the water (its ``rgb`` unchanged with neither)."""
+        lamp = getattr(self, "lamp", None)
+        if self.medium is None and lamp is None:
             return out.rgb
-        rng = self.medium.range_of(out.alpha, out.depth, self.ray_len(cam))
+        rng = Medium.range_of(out.alpha, out.depth, self.ray_len(cam))
+        if lamp is not None:   # the lamp's light in linear light, then the water in front of it
+            lit = srgb_to_linear(out.rgb.clamp(0.0, 1.0)) * torch.exp(self.lamp_log_gain_of(cam, rng)).unsqueeze(-1)
+            if self.medium is None:
+                return linear_to_srgb(lit.clamp(0.0, 1.0))
+            return self.medium.see_at(linear_to_srgb(lit.clamp(0.0, 1.0)), rng)
         if (self.compiler.compiled() == "numba" and out.rgb.dtype == torch.float32
                 and out.rgb.device.type == "cpu" and numba_water.load() is not None):
             return numba_water.see(out.rgb, rng, *self.medium.coefficients())   # numba's threads, one pass
