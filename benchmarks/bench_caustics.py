@@ -87,6 +87,11 @@ SURVEYS.update({
     "dive-water-clear": DIVE + ["--water", "clear", "--altitude", "2.7", "--altitude-swing", "1.1",
                                 "--save-depth", "--seed", "43", "--caustic-strength", "0"],
 })
+# A dive survey in deep water lit by a lamp on the camera (tools/survey_lamp.py): no sunlight
+# caustics; clean/ holds the seabed under even light.
+SURVEYS.update({
+    "dive-lamp": DIVE + ["--seed", "51", "--caustic-strength", "0", "--lamp"],
+})
 # Every method on one density control (adc, the caustic modes' default; plain 3DGS alone
 # defaults to mcmc), so that a method's score is the method's, not its densification's.
 METHODS = {

@@ -71,6 +71,7 @@ from survey_light import CAUSTIC_PATTERNS, caustic_gain, caustic_shots, light_di
 from survey_materials import CausticRig, _bpy, add_caustic_images  # noqa: E402
 from survey_scene import (add_camera, build_scene, configure_render, log, render_exr,  # noqa: E402
                           scene_triangles, set_camera_pose)
+from survey_lamp import lamp_gain  # noqa: E402
 from survey_water import WATER_TYPES, apply_water, ray_lengths, water_coefficients  # noqa: E402
 
 
@@ -252,6 +253,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     g.add_argument("--water-attenuation", default="", help="override: direct attenuation 'r,g,b' per metre")
     g.add_argument("--water-backscatter", default="", help="override: backscatter coefficient 'r,g,b' per metre")
     g.add_argument("--water-colour", default="", help="override: veiling light 'r,g,b' (linear)")
+    g = p.add_argument_group("a lamp on the camera (see tools/survey_lamp.py)")
+    g.add_argument("--lamp", action="store_true",
+                   help="light each photo by a lamp beside the camera (a cone fixed in the image, falling off "
+                        "with range); clean/ stays the seabed under even light")
+    g.add_argument("--lamp-beam", type=float, default=25.0, help="the lamp's beam half-width (degrees)")
+    g.add_argument("--lamp-tilt", type=float, default=8.0, help="the lamp's axis, tilted down in the image (degrees)")
+    g.add_argument("--vignette", type=float, default=0.0,
+                   help="lens vignetting: the photo times (1 + s rho^2)^-2, rho the radius in half-widths")
     g = p.add_argument_group("lighting and rendering")
     g.add_argument("--sun-tilt", type=float, default=25.0, help="sun tilt from vertical (degrees)")
     g.add_argument("--sun-azimuth", type=float, default=35.0, help="sun azimuth (degrees from +x)")
@@ -331,7 +340,23 @@ onto z = 0 and multiplies every seabed material's base colour, so in linear ligh
 pixel is approximately g times the matching `clean/` pixel. The mean of g is exactly 1: caustics
 redistribute light without adding any, so `clean/` (g = 1) is the scene under the caustics' mean
 illumination. {_motion_text(args)}
-{_water_text(args)}"""
+{_water_text(args)}{_lamp_text(args)}"""
+
+
+def _lamp_text(args) -> str:
+    if not (args.lamp or args.vignette):
+        return ""
+    lamp = (f"a lamp 15 cm below the camera lights the seabed: a cone of {args.lamp_beam:g} degrees (half-width) "
+            f"tilted {args.lamp_tilt:g} degrees down, falling off as the inverse square of the distance from the "
+            f"lamp, equal to `clean/` where its axis meets the seabed at {lamp_range(args):.2f} m"
+            if args.lamp else "")
+    vig = f"the lens vignettes by (1 + {args.vignette:g} rho^2)^-2" if args.vignette else ""
+    return f"""
+## Light on the camera
+
+In `images/` {"; ".join(x for x in (lamp, vig) if x)} (tools/survey_lamp.py). `clean/` holds the
+seabed under even light.
+"""
 
 
 def _water_text(args) -> str:
@@ -380,6 +405,8 @@ def render_views(args, out: Path, cams: list[Camera], rig: CausticRig, cam_ob, s
                 lin_g = lin_c
             img_g = linear_to_srgb8(lin_g)
             shots[j]["linear_mean_ratio"] = float(lin_c.mean() / max(lin_g.mean(), 1e-12))
+            if args.lamp or args.vignette:
+                lin_c = lin_c * lamp_light(args, cam, depth)
             if water is not None:
                 rng = depth * ray_lengths(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
                 lin_c = apply_water(lin_c, rng, water)
@@ -389,9 +416,9 @@ def render_views(args, out: Path, cams: list[Camera], rig: CausticRig, cam_ob, s
             if args.clean:
                 write_png(out / "clean" / cam.name, img_g)
             depths.append(depth)
-            # sparse points: SfM colours them from the photos; without water the clean views
-            # (the survey's sparse colours as they always were)
-            colour_sources.append(img_c if water is not None else img_g)
+            # sparse points: SfM colours them from the photos; without water or a lamp the clean
+            # views (the survey's sparse colours as they always were)
+            colour_sources.append(img_c if water is not None or args.lamp or args.vignette else img_g)
             shots[j]["image"] = cam.name
             if args.save_depth:
                 (out / "depth").mkdir(exist_ok=True)
@@ -399,6 +426,23 @@ def render_views(args, out: Path, cams: list[Camera], rig: CausticRig, cam_ob, s
             log(f"view {j + 1}/{len(cams)} {cam.name} rendered in {time.time() - t0:.1f} s "
                 f"(mean caustic/clean {shots[j]['linear_mean_ratio']:.3f})")
     return depths, colour_sources
+
+
+def lamp_light(args, cam, depth: np.ndarray) -> np.ndarray:
+    """(H, W, 3) the gain of ``--lamp`` (on the lamp path through ``--water``'s attenuation) and
+    ``--vignette`` on a view (tools/survey_lamp.py)."""
+    if not args.lamp:
+        rho2 = (((np.arange(cam.width) + 0.5 - cam.cx)[None, :] ** 2
+                 + (np.arange(cam.height) + 0.5 - cam.cy)[:, None] ** 2) / (0.5 * cam.width) ** 2)
+        return np.repeat(((1.0 + args.vignette * rho2) ** -2)[..., None], 3, -1)
+    att = args.water_model["attenuation_per_m"] if args.water_model is not None else (0.0, 0.0, 0.0)
+    return lamp_gain(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, depth, lamp_range(args),
+                     args.lamp_beam, args.lamp_tilt, attenuation=att, vignette=args.vignette)
+
+
+def lamp_range(args) -> float:
+    """The survey's nominal range (m): where the lamp lights the seabed as clean/ shows it."""
+    return args.altitude / math.cos(math.radians(args.pitch))
 
 
 def _water_metadata(args, shots) -> dict | None:
@@ -427,6 +471,11 @@ def survey_metadata(args, cams, path_info, terrain_size, light_dir, objects, obj
         "terrain_size_m": list(terrain_size),
         "sun_direction": light_dir.tolist(),
         "water": _water_metadata(args, shots),
+        "lamp": None if not (args.lamp or args.vignette) else {
+            "lamp": args.lamp, "beam_deg": args.lamp_beam, "tilt_deg": args.lamp_tilt, "vignette": args.vignette,
+            "nominal_range_m": lamp_range(args),
+            "model": "I = J beam(angle) (r0 / d)^2 exp(-attenuation d) (1 + vignette rho^2)^-2, d the lamp-to-"
+                     "seabed distance; clean/ holds J (tools/survey_lamp.py)"},
         "objects": obj_info,
         "cameras": [{"name": c.name, "image_id": c.image_id, "R": c.R.tolist(), "t": c.t.tolist(),
                      "center": c.center.tolist(),
