@@ -1,0 +1,70 @@
+"""Real footage end to end (data/real/: two short clips filmed by others, no caustics): Import
+Video at the defaults, then caustic removal as a new user asks for it. The job must find no
+caustics and train plain (the caustic-free images are the photos: no other frame's pieces, no
+seams), say so in its report, and model the light fixed to the camera where the clip shows one
+(the lamp-lit wreck) without taking its fall-off for the water."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ROOT
+
+pytest.importorskip("av")
+pytest.importorskip("pycolmap")
+
+REAL = ROOT / "data" / "real"
+
+
+def _run(*args, timeout=900):
+    r = subprocess.run([sys.executable, "-m", "recgs_addon", *map(str, args)], cwd=ROOT, capture_output=True,
+                       text=True, timeout=timeout)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return r
+
+
+def _clip_to_recgs(tmp_path, name, iterations):
+    survey, out = tmp_path / name, tmp_path / f"{name}-out"
+    r = _run("video", REAL / name / "clip.mp4", "--out", survey)
+    assert "a short clip" in r.stderr and "registered" in r.stderr
+    frames = json.loads((survey / "frames.json").read_text())["frames"]
+    assert len(frames) >= 18
+    r = _run("train", survey, "--out", out, "--mode", "recgs", "--iterations", iterations)
+    return survey, out, json.loads((out / "metrics.json").read_text()), r.stderr
+
+
+def _no_caustics(survey, out, m, log):
+    from recgs_addon.core.io.images import read_image
+
+    assert m["light"]["caustics"] is False and "no caustics found" in m["caustics_dropped"], m["caustics_dropped"]
+    assert "light: no caustics found" in log and "training as plain 3DGS" in log
+    assert "No caustics were found, so the run trained plain 3DGS" in (out / "report.md").read_text()
+    assert m["recurrences"] == [] and m.get("candidates") is None
+    # the caustic-free images are the photos themselves: nothing gathered from other frames
+    made = sorted((out / "decaustic").glob("*.exr"))
+    assert made
+    cache = next(survey.glob(".recgs_cache/undistorted-*/images"), survey / "images")
+    for p in made[:3]:
+        photo = next(cache.glob(p.stem + ".*"))
+        assert np.array_equal(read_image(p), read_image(photo)) or np.abs(read_image(p) - read_image(photo)).max() < 1e-3
+
+
+def test_a_seabed_filmed_by_an_auv_trains_plain_and_says_why(tmp_path):
+    """22 frames of a rocky seabed in murky water, 384x288: every frame registered, no caustics."""
+    survey, out, m, log = _clip_to_recgs(tmp_path, "auv-seabed", 150)
+    _no_caustics(survey, out, m, log)
+    assert m["psnr_test"] > 20
+
+
+@pytest.mark.slow
+def test_a_lamp_lit_wreck_is_not_caustics_and_its_lamp_is_modelled(tmp_path):
+    """An ROV over a wreck lit by its own lamp: no caustics, the lamp modelled, the water left
+    alone (the lamp's fall-off is not attenuation)."""
+    survey, out, m, log = _clip_to_recgs(tmp_path, "wreck-lamp", 120)
+    _no_caustics(survey, out, m, log)
+    assert m["lamp"]["kept"] and "lamp: modelled" in log, m["lamp"]
+    assert m["light"]["explained"] > 0.8 and m["light"]["camera"] > 0.3
+    assert not m["medium"]["kept"], m["medium"]
+    assert (out / "lamp.json").is_file() and any((out / "truecolour").glob("*.png"))
