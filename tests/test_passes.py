@@ -218,3 +218,44 @@ def test_gather_through_water_puts_every_frame_at_the_frames_own_range():
     assert (far - near).abs().mean() < 0.2 * (plain[1][both] - plain[0][both]).abs().mean()
     assert (far - near).mean(0).abs().max() < 1e-3 < (plain[1][both] - plain[0][both]).mean(0).abs().max()
     assert torch.allclose(wet[0] + veil0, plain[0], atol=1e-6)   # the frame itself: its veil apart
+
+
+def test_a_warp_takes_nothing_from_beyond_the_other_frames_edge():
+    """Where frame j's image ends, a bilinear sample would mix its edge pixels with the padding
+    around them: a dark seam along j's edge in everything gathered from it. Valid samples lie
+    half a pixel or more inside j, and carry j's own levels."""
+    flat = torch.full((H, W, 3), 0.5)
+    vi = G.PassView(flat, torch.full((H, W), ALTITUDE), torch.ones(H, W, dtype=torch.bool), *camera(0.0, 0.0))
+    vj = G.PassView(flat, torch.full((H, W), ALTITUDE), torch.ones(H, W, dtype=torch.bool), *camera(0.3 * 2.5 * W / F / W * 10.3, 0.0))
+    seen, ok = G.warp(vi, vj)
+    assert 0 < int(ok.sum()) < H * W
+    assert torch.allclose(seen[ok], torch.tensor(0.5), atol=1e-6), float((seen[ok] - 0.5).abs().max())
+
+
+def test_frames_are_evened_by_the_light_fixed_to_the_camera_before_they_are_compared():
+    """A vignetted survey: each frame's photo divided by the camera's light (the trainer's lamp)
+    before the passes compare frames, so a frame's dark edge is not taken for the floor of the
+    light; the estimates are lit again as their own frame was."""
+    from types import SimpleNamespace
+
+    from recgs_addon.core.caustics.estimators import Estimates, _relit
+    from recgs_addon.core.model.lamp import TERMS, Lamp
+    from recgs_addon.core.model.medium import ray_lengths
+
+    views, gts = survey(strength=0.0, rows=1, per_row=4)
+    lamp = Lamp(ALTITUDE, [0.0, 0.0, -0.8, 0.0, -0.8] + [0.0] * (TERMS - 5))
+    cam = SimpleNamespace(width=W, height=H, cx=W / 2, cy=H / 2, fx=F, fy=F)
+    rays = ray_lengths(W, H, F, F, W / 2, H / 2)
+    even = [v.photo.clone() for v in views]
+    for v in views:   # the photos as the lamp lit them
+        with torch.no_grad():
+            g = lamp.gain(W, H, W / 2, H / 2, v.surface * rays).unsqueeze(-1)
+        v.photo = linear_to_srgb(srgb_to_linear(v.photo) * g).clamp(0, 1)
+    lit = [v.photo.clone() for v in views]
+    est = SimpleNamespace(trainer=SimpleNamespace(lamp=lamp, light=None, device="cpu", ray_len=lambda c: rays),
+                          data=SimpleNamespace(view=lambda i, level: (cam, None)))
+    gains = Estimates._even_the_light(est, views, list(range(len(views))))
+    for k, v in enumerate(views):
+        assert torch.allclose(v.photo, even[k], atol=2e-3)            # evened: the seabed alone
+        assert torch.allclose(_relit(v.photo, gains, k), lit[k], atol=2e-3)
+    assert Estimates._even_the_light(SimpleNamespace(trainer=SimpleNamespace(lamp=None, light=None)), views, []) is None

@@ -63,6 +63,14 @@ def project(points, view):
     return torch.stack([2 * u / ww - 1, 2 * v / hh - 1], -1).unsqueeze(0), z
 
 
+def inside(grid: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(H, W) bool: the ``grid_sample`` coordinates ``grid`` (1, H, W, 2) lie half a pixel or more
+    inside an image of ``height x width``, where a bilinear sample mixes its pixels only (nearer
+    the edge it mixes in the padding around them: a dark seam along the other frame's edge)."""
+    g = grid[0]
+    return (g[..., 0].abs() <= 1 - 1 / width) & (g[..., 1].abs() <= 1 - 1 / height)
+
+
 def _sample(image, grid, mode):
     """``image`` (H', W', C) or (H', W') at ``grid``: (H, W, C) or (H, W)."""
     x = image.unsqueeze(-1) if image.dim() == 2 else image
@@ -81,9 +89,8 @@ def warp(points, view, depth_tol, min_alpha):
     samp = _sample(view["photo"], grid, "bilinear")
     near = _sample(view["surface"], grid, "nearest")
     alpha = _sample(view["alpha"], grid, "nearest")
-    g = grid[0]
-    inside = (g[..., 0].abs() <= 1) & (g[..., 1].abs() <= 1) & (z > 1e-6)
-    return samp, inside & ((near - z).abs() <= depth_tol * z) & (alpha >= min_alpha)
+    within = inside(grid, *view["photo"].shape[:2]) & (z > 1e-6)
+    return samp, within & ((near - z).abs() <= depth_tol * z) & (alpha >= min_alpha)
 
 
 def robust_stat(samples: torch.Tensor, valid: torch.Tensor, stat: str = "median", q: float = 0.25) -> torch.Tensor:

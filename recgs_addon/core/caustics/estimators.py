@@ -10,15 +10,20 @@ is what ``auto`` stands for on a survey.
 from __future__ import annotations
 
 import time
+from typing import Optional
 
 import numpy as np
 import torch
 
 from ..io.frames import read_frame_times
+from ..model.colour import linear_to_srgb, srgb_to_linear
+from ..model.lamp import Lamp
 from ..train.data import view_tensors
+from ..train.lamp import centre_range
 from . import fft_filter, geometry, lightfield, likelihood, passes
 from .consensus import consensus_targets
 from .estimate import compensate_caustics, estimate_caustics, remove_caustics
+from .light import CAMERA_FLOOR
 from .robust import trim_weights
 
 #: likelihood: training views a refit of the gain distribution renders, at most
@@ -209,6 +214,7 @@ class Estimates:
                                          viewmat, K, times.get(cam.name)))
         pts = torch.as_tensor(data.scene.points, dtype=torch.float32, device=tr.device)
         brought = geometry.prior_geometry(views, pts)
+        lit = self._even_the_light(views, ids)
         overlap = geometry.overlap_matrix(views)
         pos = {i: n for n, i in enumerate(ids)}
         train, test = [pos[i] for i in data.train_ids], [pos[i] for i in data.test_ids]
@@ -225,9 +231,11 @@ class Estimates:
                                           if light.get("correlation_s") is not None else {}))
         # with the water modelled, the frames' colours are compared at each frame's own range
         est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train, water=water)
+        est = [_relit(e, lit, k) for e, k in zip(est, train)]
         if test:
             refs, _ = passes.pass_targets(views, settings, ids=test, overlap=overlap, sources=train, gains=info["gains"],
                                           water=water)
+            refs = [_relit(r, lit, k) for r, k in zip(refs, test)]
             self.references = {i: r.half() for i, r in zip(data.test_ids, refs)}
             tr.best_by = "psnr"   # the references do not follow the model
         seconds = round(time.perf_counter() - t, 2)
@@ -238,6 +246,30 @@ class Estimates:
                                               for i, x in zip(data.train_ids, info["share"])}}
         return {"estimates": {i: e.half() for i, e in zip(data.train_ids, est)},
                 "weights": {i: w.half() for i, w in zip(data.train_ids, wts)}, "light": light}
+
+    def _even_the_light(self, views: list, ids: list[int]) -> Optional[list]:
+        """Where the survey shows light fixed to the camera (the trainer's lamp, or the light
+        finding's pattern where it varies by :data:`.light.CAMERA_FLOOR` or more), every frame's
+        photo is evened by it before frames are compared: a frame's vignetted edge is dark because
+        of the lens, not the light on the seabed, and the floor of the light would take it.
+        Returns each view's log gain (to light the estimates again), or None."""
+        tr = self.trainer
+        lamp = tr.lamp
+        light = tr.light or {}
+        if lamp is None and light.get("pattern_coef") and light.get("camera", 0.0) >= CAMERA_FLOOR:
+            r0 = centre_range(self.data)
+            if r0 is not None:
+                lamp = Lamp(r0, light["pattern_coef"], *light["range_coef"][:2], device=tr.device)
+        if lamp is None:
+            return None
+        gains = []
+        with torch.no_grad():
+            for v, i in zip(views, ids):
+                cam = self.data.view(i, 1)[0]
+                lg = lamp.log_gain(cam.width, cam.height, cam.cx, cam.cy, geometry.depth_map(v) * tr.ray_len(cam))
+                v.photo = linear_to_srgb((srgb_to_linear(v.photo.clamp(0, 1)) / torch.exp(lg).unsqueeze(-1)).clamp(0, 1))
+                gains.append(lg)
+        return gains
 
     def _fit_views(self) -> list[int]:
         """likelihood: the training views a refit renders: all of a small survey, an evenly
@@ -277,3 +309,9 @@ class Estimates:
         targets, _, _ = consensus_targets(views, self.ccfg.consensus_stat, self.ccfg.consensus_q)
         return {i: v["photo"] - t for i, v, t in zip(ids, views, targets)}
 
+
+def _relit(image: torch.Tensor, log_gain: Optional[list], k: int) -> torch.Tensor:
+    """An estimate made on evened photos (``Estimates._even_the_light``) lit again as frame ``k`` was."""
+    if log_gain is None:
+        return image
+    return linear_to_srgb((srgb_to_linear(image.clamp(0, 1)) * torch.exp(log_gain[k]).unsqueeze(-1)).clamp(0, 1))

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from ..train.coverage import DEPTH_TOL
-from .consensus import _sample, backproject, project
+from .consensus import _sample, backproject, inside, project
 
 #: Overlap grid: pixels of a frame sampled along each side to measure what another frame sees of it.
 OVERLAP_GRID = 24
@@ -109,13 +109,13 @@ def overlap_matrix(views: Sequence[PassView], depth_tol: float = DEPTH_TOL) -> n
 
 def warp(vi: PassView, vj: PassView, depth_tol: float = DEPTH_TOL) -> tuple[torch.Tensor, torch.Tensor]:
     """Frame ``vj``'s photo sampled (bilinear) at the projections of frame ``vi``'s pixels, and
-    where that is the same surface: (sRGB (H, W, 3), valid (H, W) bool: inside ``vj``, in front
-    of it, ``vj``'s own depth there within ``depth_tol`` (relative), ``vi``'s depth known)."""
+    where that is the same surface: (sRGB (H, W, 3), valid (H, W) bool: half a pixel or more
+    inside ``vj`` (:func:`.consensus.inside`), in front of it, ``vj``'s own depth there within
+    ``depth_tol`` (relative), ``vi``'s depth known)."""
     pts = backproject(depth_map(vi), vi.viewmat, vi.K)
     grid, z = project(pts, {"viewmat": vj.viewmat, "K": vj.K, "depth": vj.surface})
     near = _sample(depth_map(vj), grid, "nearest")
-    g = grid[0]
-    ok = ((g[..., 0].abs() <= 1) & (g[..., 1].abs() <= 1) & (z > 1e-6)
+    ok = (inside(grid, *vj.surface.shape) & (z > 1e-6)
           & ((near - z).abs() <= depth_tol * z) & vi.covered)
     return _sample(vj.photo, grid, "bilinear"), ok
 
@@ -188,8 +188,8 @@ def _pair_grid(rays: torch.Tensor, e: torch.Tensor, z: torch.Tensor, vj: PassVie
     hh, ww = vj.surface.shape
     gx = 2 * (x[0] / zs) / ww - 1
     gy = 2 * (x[1] / zs) / hh - 1
-    inside = (gx.abs() <= 1) & (gy.abs() <= 1) & (zj > 1e-6)
-    return torch.stack([gx, gy], -1).unsqueeze(0), inside
+    grid = torch.stack([gx, gy], -1).unsqueeze(0)
+    return grid, inside(grid, hh, ww) & (zj > 1e-6)
 
 
 def points_depth(viewmat: torch.Tensor, K: torch.Tensor, height: int, width: int, points: torch.Tensor) -> torch.Tensor:

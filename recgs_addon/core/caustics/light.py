@@ -38,7 +38,7 @@ import torch
 from ..model.colour import srgb_to_linear
 from ..model.lamp import POWERS
 from ..train.data import as_float
-from .consensus import backproject, project, _sample
+from .consensus import _sample, backproject, inside, project
 from .geometry import PassView, depth_map, points_depth, smooth
 
 #: Long side (pixels) the frames are compared at: caustic cells span tens of pixels there.
@@ -200,8 +200,7 @@ def _pair_samples(vi: PassView, vj: PassView) -> Optional[PairSamples]:
     grid, z = project(pts, {"viewmat": vj.viewmat, "K": vj.K, "depth": vj.surface})
     near = _sample(depth_map(vj), grid, "nearest")
     g = grid[0]
-    ok = ((g[..., 0].abs() <= 0.98) & (g[..., 1].abs() <= 0.98) & (z > 1e-6)
-          & ((near - z).abs() <= 0.03 * z) & vi.covered)
+    ok = (inside(grid, *vj.surface.shape) & (z > 1e-6) & ((near - z).abs() <= 0.03 * z) & vi.covered)
     h, w = vi.surface.shape
     s = LIGHT_SIGMA * w / LIGHT_SIDE
     other = _sample(vj.photo, grid, "bilinear")
