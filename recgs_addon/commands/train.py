@@ -141,11 +141,12 @@ def run_train(args) -> int:
         from ..core.train.water import DECIDE_VIEWS
 
         # what _finish renders: held-out views (outputs, final scores), every training view
-        # (views per Gaussian), every view again at most 400 px (coverage), and with water every
-        # training view's range (its true-colour photo) and a few to decide on the water
+        # (views per Gaussian), every view again at most 400 px (coverage), with water or a lamp
+        # every training view's range (its true-colour photo), and with water a few to decide on it
         n_train, n_test = len(trainer.data.train_ids), len(trainer.data.test_ids)
         trainer.finishing_renders = lambda: (2 * n_test + 2 * n_train + n_test + method.finishing_renders()
-                                             + (n_train + DECIDE_VIEWS if trainer.medium is not None else 0))
+                                             + (n_train if trainer.forms_image else 0)
+                                             + (DECIDE_VIEWS if trainer.medium is not None else 0))
     except RecGSError as exc:
         return fail(str(exc))
 
