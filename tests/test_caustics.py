@@ -757,6 +757,15 @@ def test_end_of_run_choice_between_the_caustic_free_and_the_plain_model():
     assert not prefers_recgs({"psnr_captured": 20.0 - 2 * HARM_DB, "nll": 0.7}, lik)[0]
     assert not prefers_recgs({"psnr_captured": 20.5, "nll": 0.9}, lik)[0]
     assert prefers_recgs({}, {})[0]
+    # the passes' references decide, unless the relit photos show the caustic-free model clearly worse
+    from recgs_addon.core.caustics.recgs import RELIT_CHECK_K, RELIT_HARM_DB
+    key = f"psnr_relit{RELIT_CHECK_K}"
+    ref = {"psnr_reference": 20.0, key: 22.0}
+    assert prefers_recgs({"psnr_reference": 21.0, key: 22.0 - RELIT_HARM_DB / 2}, ref)[0]
+    keep, why = prefers_recgs({"psnr_reference": 23.0, key: 22.0 - 2 * RELIT_HARM_DB}, ref)
+    assert not keep and "relit" in why
+    assert not prefers_recgs({"psnr_reference": 19.0, key: 23.0}, ref)[0]
+    assert prefers_recgs({"psnr_reference": 21.0}, {"psnr_reference": 20.0})[0]   # no relit scores: the references
 
 
 def test_passes_run_resumed_after_its_last_round_writes_its_caustic_free_photos(caustic_scene):
