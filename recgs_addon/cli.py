@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from .commands import capture, render, scene, train
+from .commands import blocks, capture, render, scene, train
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -51,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Each command's body, by name.
-COMMANDS = {"import": scene.cmd_import, "info": scene.cmd_info, "train": train.run_train,
+COMMANDS = {"import": scene.cmd_import, "info": scene.cmd_info, "train": blocks.train_command,
             "render": render.run_render, "sfm": capture.cmd_sfm, "video": capture.cmd_video}
 
 

@@ -34,6 +34,9 @@ ENGINE_REQUIREMENTS = ("torch==2.13.0", PYAV_REQUIREMENT)
 #: its wheels, for Python 3.10-3.13 on Linux, Windows and macOS, x64 and arm64). Only the worker
 #: imports it; without it training runs on eager torch (slower, same numbers).
 NUMBA_REQUIREMENT = "numba==0.61.2"
+#: Ray: optional, for training in blocks (``train --blocks N``, commands/blocks.py); installed only on
+#: request (Install with Ray), as import, preview and plain training never need it.
+RAY_REQUIREMENT = "ray==2.60.0"
 #: The numpy versions numba 0.61.2 works with: [1.24, 2.3).
 NUMBA_NUMPY = ((1, 24), (2, 3))
 #: Extra pip arguments for the engine install, from the environment (e.g. a local index:
@@ -321,7 +324,10 @@ class Installer:
                 "except Exception:\n    nb = None   # optional: training then runs on eager torch\n"
                 "try:\n    import av; pyav = av.__version__\n"
                 "except Exception:\n    pyav = None   # Import Video then asks for an update\n"
-                "print(json.dumps({'torch': torch.__version__, 'numba': nb, 'av': pyav, 'file': torch.__file__}))")
+                "try:\n    import ray; rv = ray.__version__\n"
+                "except Exception:\n    rv = None   # optional: training in blocks asks for it\n"
+                "print(json.dumps({'torch': torch.__version__, 'numba': nb, 'av': pyav, 'ray': rv, "
+                "'file': torch.__file__}))")
         env = dict(os.environ, PYTHONPATH=str(self.tmp), PYTHONNOUSERSITE="1")
         r = subprocess.run([self.python, "-c", code], capture_output=True, text=True, env=env, timeout=300)
         if r.returncode != 0:

@@ -3,11 +3,13 @@
 # with apt-get when missing and we are root or have sudo), then a virtual environment in
 # .venv with the pinned requirements. Safe to run again: it only does what is missing.
 #   bash scripts/setup.sh          runtime dependencies
-#   bash scripts/setup.sh --dev    plus the test tools
+#   bash scripts/setup.sh --dev    plus the test tools (and Ray)
+#   bash scripts/setup.sh --ray    plus Ray, for training in blocks (train --blocks N)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DEV=0
 [ "${1:-}" = "--dev" ] && DEV=1
+[ "${1:-}" = "--ray" ] && DEV=ray
 
 # Libraries `import bpy` needs, plus EGL/Mesa for EEVEE without a display.
 DEB_PKGS="libx11-6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libsm6 libgl1 libegl1 libgl1-mesa-dri"
@@ -44,6 +46,10 @@ fi
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 REQ=requirements.txt
 [ "$DEV" = 1 ] && REQ=requirements-dev.txt
+if [ "$DEV" = ray ]; then
+  REQ=$(mktemp)
+  printf -- '-r %s\n-r %s\n' "$PWD/requirements.txt" "$PWD/requirements-ray.txt" > "$REQ"
+fi
 stamp=".venv/.recgs-$(cat requirements*.txt | sha256sum | cut -c1-16)-$DEV"
 if [ ! -e "$stamp" ]; then
   echo "setup: installing Python packages from $REQ into .venv"

@@ -119,6 +119,10 @@ class RECGS_OT_install_engine(bpy.types.Operator):
     bl_idname = "recgs.install_engine"
     bl_label = "Install Training Engine"
 
+    with_ray: bpy.props.BoolProperty(
+        name="With Ray", default=False,
+        description="Include Ray, which training in blocks runs on (about 70 MB more to download)")
+
     def execute(self, context):
         global _installer
         if _installer is not None:
@@ -133,7 +137,8 @@ class RECGS_OT_install_engine(bpy.types.Operator):
             self.report({"ERROR"}, f"Not an installed extension: set {ei.ENGINE_DIR_ENV} to an engine folder")
             return {"CANCELLED"}
         try:
-            _installer = ei.Installer(root)
+            _installer = ei.Installer(root, requirements=ei.engine_requirements()
+                                      + ((ei.RAY_REQUIREMENT,) if self.with_ray else ()))
         except (OSError, ei.EngineError) as exc:
             self.report({"ERROR"}, f"Could not start the engine install: {exc}")
             return {"CANCELLED"}
@@ -189,7 +194,11 @@ def draw_engine(layout) -> None:
         row.operator(RECGS_OT_remove_engine.bl_idname, text="", icon="TRASH")
         if outdated:   # an engine from an earlier version: one click installs the current one over it
             layout.label(text=outdated[:1].upper() + outdated[1:], icon="INFO")
-            layout.operator(RECGS_OT_install_engine.bl_idname, text="Update Training Engine", icon="FILE_REFRESH")
+            op = layout.operator(RECGS_OT_install_engine.bl_idname, text="Update Training Engine", icon="FILE_REFRESH")
+            op.with_ray = bool(info.get("ray"))
+        elif not info.get("ray"):   # training in blocks needs Ray: the engine again, with it
+            op = layout.operator(RECGS_OT_install_engine.bl_idname, text="Add Ray (Train in Blocks)", icon="IMPORT")
+            op.with_ray = True
     else:
         layout.operator(RECGS_OT_install_engine.bl_idname, icon="IMPORT")
         if not bpy.app.online_access:

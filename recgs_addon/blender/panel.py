@@ -103,6 +103,9 @@ class VIEW3D_PT_recgs_training(_RecGSPanel, bpy.types.Panel):
         sub.prop(s, "caustic_k")
         col.prop(s, "medium")
         col.prop(s, "lamp")
+        col.prop(s, "blocks")
+        if s.blocks > 1:
+            col.prop(s, "cluster")
         if s.water:
             layout.row().prop(s, "water_view", expand=True)
         if not busy and not engine.engine_ready():

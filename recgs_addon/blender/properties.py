@@ -77,6 +77,8 @@ class RecGSSettings(bpy.types.PropertyGroup):
     caustic_k: _setting("caustic_k")
     medium: _setting("medium")
     lamp: _setting("lamp")
+    blocks: _setting("blocks")
+    cluster: _setting("cluster")
     water_view: EnumProperty(name="Show", default="TRUE_COLOUR", update=_water_view,
                              description="Show the seabed in its true colour, or as seen underwater (the fitted "
                                          "water as the world's volume, in EEVEE and Cycles)",
@@ -158,6 +160,7 @@ SETTINGS = {
     "device": _unless_default("device"), "eager": _copy("eager"),
     "caustic_k": (lambda s: s.caustic_k if s.mode in CAUSTIC_MODES else None, _copy("caustic_k")[1]),
     "images": _unless_default("images"), "medium": _unless_default("medium"), "lamp": _unless_default("lamp"),
+    "blocks": _zero_is_none("blocks"), "cluster": _unless_default("cluster"),
 }
 #: ``train`` options (argparse dests) that the settings hold.
 SETTINGS_OPTIONS = tuple(SETTINGS)

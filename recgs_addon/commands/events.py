@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -37,11 +39,17 @@ class StopSignals:
     def __init__(self) -> None:
         self.received: str | None = None
         self._old: dict = {}
+        #: a file whose appearing asks the same (a job run as a block of ``train --blocks``)
+        self.stop_file = os.environ.get("RECGS_STOP_FILE") or None
 
     def __call__(self) -> bool:
+        if self.received is None and self.stop_file and os.path.exists(self.stop_file):
+            self.received = "a stop of the whole job"
         return self.received is not None
 
     def install(self) -> "StopSignals":
+        if threading.current_thread() is not threading.main_thread():
+            return self   # handlers are the main thread's to set: only the stop file is watched
         self._old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
         return self
 

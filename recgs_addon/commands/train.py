@@ -53,6 +53,19 @@ def _check_device(name: str) -> None:
         raise RecGSError("--device mps: this torch has no MPS device")
 
 
+def _read_block(path):
+    """``--block FILE``: one block of a split survey (commands/blocks.py writes it)."""
+    if path is None:
+        return None
+    try:
+        block = json.loads(Path(path).read_text())
+        if not all(k in block for k in ("train", "test", "cell")):
+            raise ValueError("it names no train, test and cell")
+        return block
+    except (OSError, ValueError) as exc:
+        raise RecGSError(f"{path}: not a block of a split survey ({exc})") from None
+
+
 def tune_allocator() -> str:
     """Keep freed memory in this process (glibc on Linux) instead of handing it back to the OS.
 
@@ -118,7 +131,7 @@ def run_train(args) -> int:
                          compiled=False if args.eager else (True if args.compile_first else None),
                          keep_best=False if args.keep_last else None,
                          strategy=args.density, prune_weight=args.prune_weight, medium=args.medium,
-                         lamp=args.lamp)
+                         lamp=args.lamp, block=_read_block(args.block))
             caustic = dict(mode=args.mode, caustic_dc=None if args.caustic_dc is None else args.caustic_dc == "keep",
                            caustic_k=args.caustic_k, caustic_model=args.caustic_model, warmup=args.warmup,
                            recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,

@@ -11,6 +11,7 @@ from .scene import EAGER, IMAGE_FOLDER, SCENE_DIR
 from .table import Option, OptionTable, Setting
 
 _CAUSTICS = "caustic removal"
+_BLOCKS = "training in blocks"
 
 #: What each water setting does (labels and descriptions: the sidebar's Water).
 _MEDIUM = {
@@ -97,6 +98,18 @@ TRAIN_OPTIONS = OptionTable([
                               "which also leaves no score to keep the best model by", type=int,
            default=TrainConfig.holdout_every, setting=Setting("Hold Out Every", minimum=0)),
     Option("--init-ply", "Start from these Gaussians", type=Path),
+    Option("--blocks", "Split the survey into this many blocks over the seabed, train them in parallel on Ray "
+                       "(each on the photos that see it, with a margin) and merge them into one scene; 0 = one job. "
+                       "For surveys larger than one machine's memory or time", type=int, default=0, group=_BLOCKS,
+           setting=Setting("Train in Blocks", minimum=0, soft_max=64)),
+    Option("--cluster", "Ray cluster to run the blocks on (an address such as ray://host:10001 or auto; default "
+                        "RAY_ADDRESS, else a local Ray on this machine). Its workers must reach the output folder",
+           group=_BLOCKS, setting=Setting("Cluster Address", default="",
+                                           why="Empty: RAY_ADDRESS, else a local Ray on this machine")),
+    Option("--block-threads", "Threads each block trains with (default: this machine's cores shared among the "
+                              "blocks that run at once)", type=int, default=0, group=_BLOCKS),
+    Option("--block", "Train one block of a split survey (its block.json; --blocks writes them)", type=Path,
+           group=_BLOCKS),
     Option("--resume", "Continue from OUT/checkpoint.pt", type=bool),
     Option("--checkpoint-every", "Seconds between checkpoints (also the sidebar's live updates); a crash loses at "
                                  "most this", type=float, default=30.0,

@@ -80,6 +80,9 @@ class TrainConfig:
                                          # "auto" (where the survey can tell it from colour), "on", "off"
     lamp: str = "auto"                   # light fixed to the camera (a lamp's cone and fall-off, vignetting)
                                          # fitted with the Gaussians: "auto" (where the survey shows it), "on", "off"
+    block: Optional[dict] = None         # one block of a survey trained in blocks (core/blocks): the views
+                                         # it trains on ("train") and is scored on ("test"), by name, and
+                                         # the cell of the seabed whose sparse points start it ("cell")
 
     @property
     def strategy(self) -> str:

@@ -52,14 +52,20 @@ class TrainData:
     """
 
     def __init__(self, scene: Scene, downscale: int, holdout_every: int, device: str = "cpu",
-                 gt_scene: Optional[Scene] = None, max_side: int = 0):
+                 gt_scene: Optional[Scene] = None, max_side: int = 0, test_names: Optional[list[str]] = None):
         self.scene = scene
         self.gt_scene = gt_scene
         self.downscale = downscale
         self.max_side = max_side
         self.device = device
         names = [c.name for c in scene.cameras]
-        self.train_ids, self.test_ids = holdout_split(names, holdout_every)
+        if test_names is None:
+            self.train_ids, self.test_ids = holdout_split(names, holdout_every)
+        else:   # a block of a survey: the survey's own held-out views that fall in it
+            order = sorted(range(len(names)), key=lambda i: names[i])
+            held = set(test_names)
+            self.train_ids = [i for i in order if names[i] not in held]
+            self.test_ids = [i for i in order if names[i] in held]
         if not self.train_ids:
             raise RecGSError(f"{scene.image_dir}: no training images left after holding out every "
                              f"{holdout_every}th image")
@@ -157,6 +163,23 @@ class TrainData:
         a pyramid level or another size)."""
         w, h = self.sizes[index]
         return (w * h) / (cam.width * cam.height)
+
+
+def block_scene(scene: Scene, block: dict) -> Scene:
+    """The part of ``scene`` that one block of a survey trains on: the cameras the block names
+    (``train`` and ``test``), the sparse points in its ``cell`` (margin included)."""
+    from dataclasses import replace
+
+    from ..model.cells import Cell
+
+    wanted = set(block["train"]) | set(block["test"])
+    cameras = [c for c in scene.cameras if c.name in wanted]
+    missing = sorted(wanted - {c.name for c in cameras})
+    if missing:
+        raise RecGSError(f"{scene.model_dir}: block {block.get('name', '?')} names {len(missing)} image(s) the "
+                         f"survey does not hold (first: {missing[0]}); split the survey again")
+    keep = Cell.from_dict(block["cell"]).contains(scene.points)
+    return replace(scene, cameras=cameras, points=scene.points[keep], colors=scene.colors[keep])
 
 
 def view_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:

@@ -32,7 +32,7 @@ from . import density, numba_ssim
 from .compiling import CompileSwitch
 from .config import TrainConfig
 from .coverage import sparse_coverage
-from .data import TrainData, resolve_image_dir, view_tensors
+from .data import TrainData, block_scene, resolve_image_dir, view_tensors
 from .density_control import DensityMixin
 from .evaluation import EvaluationMixin
 from .lamp import LampMixin
@@ -503,4 +503,10 @@ def load_data(scene_dir: str | Path, cfg: TrainConfig, images: Optional[str | Pa
         raise RecGSError(f"{scene_dir / 'images'}: image folder is empty")
     scene = load_scene(scene_dir, image_dir=image_dir)
     gt_scene = load_scene(scene_dir, image_dir=resolve_image_dir(scene_dir, gt_images)) if gt_images is not None else None
-    return TrainData(scene, cfg.downscale, cfg.holdout_every, cfg.device, gt_scene=gt_scene, max_side=cfg.max_side)
+    test_names = None
+    if cfg.block is not None:   # one block of a survey trained in blocks
+        scene = block_scene(scene, cfg.block)
+        gt_scene = None if gt_scene is None else block_scene(gt_scene, cfg.block)
+        test_names = list(cfg.block["test"])
+    return TrainData(scene, cfg.downscale, cfg.holdout_every, cfg.device, gt_scene=gt_scene, max_side=cfg.max_side,
+                     test_names=test_names)
