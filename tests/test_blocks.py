@@ -154,7 +154,7 @@ def test_blocks_on_local_ray_survive_a_killed_worker(tmp_path):
     out = tmp_path / "out"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     job = subprocess.Popen([sys.executable, "-m", "recgs_addon", "train", str(survey), "--out", str(out),
-                            "--blocks", "2", "--iterations", "1200", "--checkpoint-every", "0.3",
+                            "--blocks", "2", "--iterations", "500", "--checkpoint-every", "0.3",
                             "--holdout-every", "5", "--eager", "--medium", "off", "--lamp", "off"],
                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     block = out / "blocks" / "block01"
@@ -181,7 +181,7 @@ def test_blocks_on_local_ray_survive_a_killed_worker(tmp_path):
     starts = [e for e in _events(block / "events.jsonl") if e["event"] == "start"]
     assert len(starts) == 2 and not starts[0]["resumed"] and starts[1]["resumed"] and starts[1]["iteration"] > 0
     b1 = next(b for b in done["blocks"] if b["block"] == "block01")
-    assert b1["resumed"] and b1["iterations"] == 1200
+    assert b1["resumed"] and b1["iterations"] == 500
     # one scene: the merged PLY holds each block's own Gaussians, scored on every held-out photo
     from recgs_addon.core.io.ply import read_gaussian_ply
 
@@ -190,3 +190,38 @@ def test_blocks_on_local_ray_survive_a_killed_worker(tmp_path):
     assert done["scores"]["views"] == 4 and done["psnr_test"] > 20
     assert any(e["event"] == "progress" and len(e["blocks"]) == 2 for e in events)
     assert (out / "report.md").read_text().count("block0") >= 2
+
+
+@pytest.mark.slow
+def test_blocks_cancel_and_resume(tmp_path):
+    pytest.importorskip("ray")
+    survey = tmp_path / "survey"
+    write_rendered_scene(survey, n_views=16, width=40, height=30, n_gauss=300, downward=True,
+                         heights=[1.2] * 16)
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "recgs_addon", "train", str(survey), "--out", str(out), "--blocks", "2",
+           "--iterations", "600", "--checkpoint-every", "0.3", "--eager", "--medium", "off", "--lamp", "off"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    job = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    blocks = [out / "blocks" / n for n in ("block01", "block02")]
+    t0 = time.time()
+    while time.time() - t0 < 300 and job.poll() is None:
+        if all(any(e["event"] == "checkpoint" for e in _events(b / "events.jsonl")) for b in blocks):
+            job.send_signal(signal.SIGTERM)
+            break
+        time.sleep(0.2)
+    stdout, stderr = job.communicate(timeout=300)
+    assert job.returncode == 0, stderr[-3000:]
+    done = [json.loads(x) for x in stdout.splitlines() if x.startswith("{")][-1]
+    assert done["event"] == "done" and done["status"] == "cancelled", done
+    for b in blocks:   # each stopped after a checkpoint, not done
+        assert (b / "checkpoint.pt").is_file() and not (b / "metrics.json").is_file()
+        assert [e for e in _events(b / "events.jsonl") if e["event"] == "done"][-1]["status"] == "cancelled"
+    assert (out / "point_cloud.ply").is_file()   # what the blocks had, merged
+
+    r = subprocess.run(cmd + ["--resume"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=400)
+    assert r.returncode == 0, r.stderr[-3000:]
+    done = [json.loads(x) for x in r.stdout.splitlines() if x.startswith("{")][-1]
+    assert done["status"] == "done"
+    for b in done["blocks"]:
+        assert b["starts"] == 2 and b["resumed"] and b["iterations"] == 600

@@ -48,7 +48,7 @@ def start_training(scene, obj, resume: bool = False, echo_stderr: bool = False, 
     out = out_dir_for(s, obj if resume else None, scene_dir)
     init_ply, how = None, "fresh, from the survey's sparse points"
     if resume:
-        if not (out / "checkpoint.pt").is_file():
+        if not ((out / "checkpoint.pt").is_file() or (out / "blocks" / "plan.json").is_file()):
             raise WorkflowError(f"{out}: no checkpoint to resume from; use Train")
         edited, g = object_edited(obj, out)
         if edited:

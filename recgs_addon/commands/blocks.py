@@ -285,9 +285,12 @@ def _progress(plan, events: dict, results: dict, elapsed: float) -> None:
                        "psnr_test": p.get("psnr_test"), "eta": p.get("eta"), "done": b.name in results})
     etas = [x["eta"] for x in blocks if x["eta"] is not None and not x["done"]]
     done = sum(x["done"] for x in blocks)
+    fraction = sum(1.0 if b.name in results else float(events[b.name].last.get("fraction") or 0.0)
+                   for b in plan.blocks) / len(plan.blocks)
     emit("progress", phase=f"blocks {done}/{len(blocks)} done", iteration=sum(x["iteration"] for x in blocks),
          gaussians=sum(x["gaussians"] or 0 for x in blocks), elapsed=round(elapsed, 2),
-         eta=max(etas) if etas else None, loss=None, sh_degree=None, psnr_test=None, blocks=blocks)
+         eta=max(etas) if etas else None, fraction=round(fraction, 4), loss=None, sh_degree=None, psnr_test=None,
+         blocks=blocks)
     print(f"[blocks] {done}/{len(blocks)} done; " + ", ".join(
         f"{x['block']} it {x['iteration']}" for x in blocks) + f" {elapsed:.0f}s", file=sys.stderr, flush=True)
 
@@ -307,6 +310,16 @@ def _merged(plan, bdir: Path):
     return g, dict(zip(names, kept))
 
 
+def _iterations(bdir: Path, plan) -> int:
+    """Steps the blocks have made, by their last progress events."""
+    total = 0
+    for b in plan.blocks:
+        e = _BlockEvents(bdir / b.name / "events.jsonl")
+        e.read()
+        total += int(e.last.get("iteration") or 0)
+    return total
+
+
 def _preview(plan, bdir: Path, out: Path) -> None:
     from ..core.io.ply import write_gaussian_ply
 
@@ -315,7 +328,7 @@ def _preview(plan, bdir: Path, out: Path) -> None:
         write_gaussian_ply(out / "point_cloud.ply", g)
     except (RecGSError, OSError):   # a block's PLY between writes: the next look tries again
         return
-    emit("checkpoint", ply=str(out / "point_cloud.ply"), gaussians=len(g))
+    emit("checkpoint", ply=str(out / "point_cloud.ply"), gaussians=len(g), iteration=_iterations(bdir, plan))
 
 
 def _finish(args, plan, bdir: Path, out: Path, results: dict, stopped, t0: float) -> int:
@@ -328,7 +341,7 @@ def _finish(args, plan, bdir: Path, out: Path, results: dict, stopped, t0: float
 
     g, kept = _merged(plan, bdir)
     write_gaussian_ply(out / "point_cloud.ply", g)
-    emit("checkpoint", ply=str(out / "point_cloud.ply"), gaussians=len(g))
+    emit("checkpoint", ply=str(out / "point_cloud.ply"), gaussians=len(g), iteration=_iterations(bdir, plan))
     if stopped:
         emit("done", status="cancelled", reason=f"received {stopped}", gaussians=len(g),
              checkpoint=str(bdir))
