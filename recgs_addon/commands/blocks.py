@@ -50,6 +50,9 @@ def block_argv(args) -> list[str]:
         value = getattr(args, opt.dest, None)
         if value is None or value is False or value == opt.default:
             continue
+        if opt.dest in ("images", "gt_images") and Path(value).exists() \
+                and not (Path(args.scene_dir) / value).is_dir():
+            value = Path(value).resolve()   # a folder named from here: a worker starts elsewhere
         argv += [opt.flag] if value is True else [opt.flag, str(value)]
     return argv
 
@@ -127,7 +130,10 @@ def run_blocks(args) -> int:
         for line in lines:
             print(line, file=sys.stderr, flush=True)
         common = block_argv(args)
-        task = ray.remote(num_cpus=threads, max_retries=RETRIES)(train_block)
+        # a fresh worker for every block (max_calls=1): a job keeps the memory it frees
+        # (train.tune_allocator), so a worker reused for a second block would start it with the
+        # first one's memory held, and its plan would see too little left
+        task = ray.remote(num_cpus=threads, max_retries=RETRIES, max_calls=1)(train_block)
         refs = {}
         for b in plan.blocks:
             d = bdir / b.name
