@@ -189,7 +189,10 @@ def test_blocks_on_local_ray_survive_a_killed_worker(tmp_path):
     assert len(merged) == sum(b["kept"] for b in done["blocks"]) == done["gaussians"]
     assert done["scores"]["views"] == 4 and done["psnr_test"] > 20
     assert any(e["event"] == "progress" and len(e["blocks"]) == 2 for e in events)
-    assert (out / "report.md").read_text().count("block0") >= 2
+    report = (out / "report.md").read_text()
+    assert report.count("block0") >= 2
+    # the seam-crossing held-out photos, rendered beside the photo, in the report
+    assert done["seam_figures"] and all((out / f).is_file() and f in report for f in done["seam_figures"])
 
 
 @pytest.mark.slow

@@ -453,3 +453,10 @@ def test_panel_progress_is_the_jobs_share_done(bpy_session):
     job_follow._apply(a, s, {"event": "progress", "phase": "refine", "iteration": 9, "elapsed": 60.0,
                              "eta": 20.0, "fraction": 0.75})
     assert s.progress == pytest.approx(0.75) and s.eta == pytest.approx(20.0)
+    # a job in blocks: its share done, and each block's step in the message
+    job_follow._apply(a, s, {"event": "progress", "phase": "blocks 1/2 done", "iteration": 1500, "elapsed": 70.0,
+                             "eta": 30.0, "fraction": 0.6, "loss": None, "psnr_test": None,
+                             "blocks": [{"block": "block01", "iteration": 1000, "psnr_test": 27.5, "done": True},
+                                        {"block": "block02", "iteration": 500, "psnr_test": None, "done": False}]})
+    assert s.progress == pytest.approx(0.6) and s.phase == "blocks 1/2 done"
+    assert s.message == "block01: done, 27.50 dB; block02: it 500"

@@ -169,6 +169,10 @@ def _apply(a: ActiveJob, s, ev: dict) -> None:
         if ev.get("psnr_test") is not None:
             s.psnr_test = float(ev["psnr_test"])
         s.progress = min(1.0, float(ev.get("fraction") or 0.0))   # the job's own share done
+        if ev.get("blocks"):   # training in blocks: each block's step and score
+            s.message = "; ".join(
+                f"{b.get('block')}: " + ("done" if b.get("done") else f"it {b.get('iteration') or 0}")
+                + (f", {b['psnr_test']:.2f} dB" if b.get("psnr_test") is not None else "") for b in ev["blocks"])
     elif kind == "checkpoint":
         s.gaussians = int(ev.get("gaussians") or s.gaussians)
         obj = bpy.data.objects.get(a.object_name)

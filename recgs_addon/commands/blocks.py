@@ -356,8 +356,10 @@ def _finish(args, plan, bdir: Path, out: Path, results: dict, stopped, t0: float
     cfg = preset(args.preset, downscale=args.downscale, max_side=args.max_side, holdout_every=args.holdout_every)
     gt = args.gt_images if args.gt_images is not None else default_gt_dir(args.scene_dir)
     data = load_data(args.scene_dir, cfg, images=args.images, gt_images=gt)
-    scores = score_views(g, data, data.test_ids, set(plan.seam_views))
+    seam_images: dict = {}
+    scores = score_views(g, data, data.test_ids, set(plan.seam_views), keep=seam_images)
     summary = summarise(scores)
+    figures = _seam_figures(out, scores, seam_images)
     blocks = []
     for b in plan.blocks:
         m = {}
@@ -381,13 +383,32 @@ def _finish(args, plan, bdir: Path, out: Path, results: dict, stopped, t0: float
                "iterations": sum(b["iterations"] or 0 for b in blocks),
                "job_seconds": round(time.perf_counter() - t0, 2),
                "psnr_test": summary["psnr"], "psnr_test_gt": summary["psnr_gt"], "scores": summary,
-               "views": [asdict(s) for s in scores], "images": copied,
+               "views": [asdict(s) for s in scores], "images": copied, "seam_figures": figures,
                "test_views": [data.scene.cameras[i].name for i in data.test_ids]}
     with atomic_path(out / "metrics.json", "metrics") as tmp:
         tmp.write_text(json.dumps(_finite_tree(metrics), indent=2, allow_nan=False, default=_json_default))
     report = _report(out, plan, metrics)
     emit("done", report=str(report), **{k: v for k, v in metrics.items() if k not in ("views",)})
     return 0
+
+
+#: Held-out photos crossing a seam shown in the report (the worst-scored first).
+SEAM_FIGURES = 4
+
+
+def _seam_figures(out: Path, scores, images: dict) -> list[str]:
+    """The merged scene's render beside the photo for the seam-crossing held-out views that
+    scored worst, as ``OUT/report/seam_NAME.png``; their paths relative to OUT."""
+    from ..core.io.images import write_image
+
+    worst = sorted((s for s in scores if s.name in images), key=lambda s: s.psnr)[:SEAM_FIGURES]
+    paths = []
+    for s in worst:
+        rel = f"report/seam_{Path(s.name).stem}.png"
+        (out / "report").mkdir(parents=True, exist_ok=True)
+        write_image(out / rel, images[s.name])
+        paths.append(rel)
+    return paths
 
 
 def _collect_images(plan, bdir: Path, out: Path) -> dict:
@@ -450,6 +471,10 @@ def _report(out: Path, plan, m: dict) -> Path:
         spread = np.ptp(np.asarray(att), axis=0) / np.maximum(np.mean(att, axis=0), 1e-9)
         lines += ["", f"The blocks fitted the water each on their own photos: their attenuations differ by "
                       f"{', '.join(f'{100 * x:.0f} %' for x in spread)} (red, green, blue)."]
+    if m.get("seam_figures"):
+        lines += ["", "Held-out photos that cross a seam, the merged scene's render (left) beside the photo "
+                      "(right), the lowest-scored first:", ""]
+        lines += [f"![{Path(p).stem}]({p})" for p in m["seam_figures"]]
     lines += ["", "Each block's own report is in `blocks/NAME/report.md`. A block's held-out PSNR is that of its "
               "own model on the held-out photos in its cell, with its own water and lamp; the merged scene's is "
               "of the Gaussians as stored."]

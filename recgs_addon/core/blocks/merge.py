@@ -49,9 +49,11 @@ class ViewScore:
 
 
 @torch.no_grad()
-def score_views(g: GaussianSet, data: TrainData, ids: list[int], seam_names: set[str]) -> list[ViewScore]:
+def score_views(g: GaussianSet, data: TrainData, ids: list[int], seam_names: set[str],
+                keep: Optional[dict] = None) -> list[ViewScore]:
     """PSNR of ``g``'s render of each view ``ids`` of ``data`` (its training size) against the
-    photo and the ground truth."""
+    photo and the ground truth. ``keep``: a dict that receives, for the views that cross a seam,
+    their render beside their photo (H, 2W, 3) uint8 by name."""
     t = {n: torch.from_numpy(getattr(g, n)) for n in ("means", "log_scales", "quats", "logit_opacities", "sh")}
     scores = []
     for i in ids:
@@ -61,6 +63,8 @@ def score_views(g: GaussianSet, data: TrainData, ids: list[int], seam_names: set
                      cam.width, cam.height, sh_degree=g.sh_degree).rgb.clamp(0, 1)
         gt = data.gt_view(i)
         name = data.scene.cameras[i].name
+        if keep is not None and name in seam_names:
+            keep[name] = (torch.cat([rgb, photo.clamp(0, 1)], dim=1) * 255 + 0.5).to(torch.uint8).numpy()
         scores.append(ViewScore(name, psnr(rgb, photo), None if gt is None else psnr(rgb, gt), name in seam_names))
     return scores
 
