@@ -146,17 +146,22 @@ def _events(path: Path) -> list[dict]:
     return [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.is_file() else []
 
 
-def test_blocks_on_local_ray_survive_a_killed_worker(tmp_path):
+def blocks_job(tmp_path, n_views: int, iterations: int, *extra: str) -> tuple[list[str], Path, dict]:
+    """(the command of a 2-block job on a tiny survey of ``n_views``, its OUT, its environment)."""
     pytest.importorskip("ray")
     survey = tmp_path / "survey"
-    write_rendered_scene(survey, n_views=20, width=40, height=30, n_gauss=400, downward=True,
-                         heights=[1.2] * 20)
+    write_rendered_scene(survey, n_views=n_views, width=40, height=30, n_gauss=20 * n_views, downward=True,
+                         heights=[1.2] * n_views)
     out = tmp_path / "out"
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    job = subprocess.Popen([sys.executable, "-m", "recgs_addon", "train", str(survey), "--out", str(out),
-                            "--blocks", "2", "--iterations", "500", "--checkpoint-every", "0.3",
-                            "--holdout-every", "5", "--eager", "--medium", "off", "--lamp", "off"],
-                           cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cmd = [sys.executable, "-m", "recgs_addon", "train", str(survey), "--out", str(out), "--blocks", "2",
+           "--iterations", str(iterations), "--checkpoint-every", "0.3", "--eager", "--medium", "off",
+           "--lamp", "off", *extra]
+    return cmd, out, {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+def test_blocks_on_local_ray_survive_a_killed_worker(tmp_path):
+    cmd, out, env = blocks_job(tmp_path, 20, 500, "--holdout-every", "5")
+    job = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     block = out / "blocks" / "block01"
     killed = None
     t0 = time.time()
@@ -197,14 +202,7 @@ def test_blocks_on_local_ray_survive_a_killed_worker(tmp_path):
 
 @pytest.mark.slow
 def test_blocks_cancel_and_resume(tmp_path):
-    pytest.importorskip("ray")
-    survey = tmp_path / "survey"
-    write_rendered_scene(survey, n_views=16, width=40, height=30, n_gauss=300, downward=True,
-                         heights=[1.2] * 16)
-    out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "recgs_addon", "train", str(survey), "--out", str(out), "--blocks", "2",
-           "--iterations", "600", "--checkpoint-every", "0.3", "--eager", "--medium", "off", "--lamp", "off"]
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd, out, env = blocks_job(tmp_path, 16, 600)
     job = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     blocks = [out / "blocks" / n for n in ("block01", "block02")]
     t0 = time.time()
@@ -228,3 +226,15 @@ def test_blocks_cancel_and_resume(tmp_path):
     assert done["status"] == "done"
     for b in done["blocks"]:
         assert b["starts"] == 2 and b["resumed"] and b["iterations"] == 600
+
+
+def test_blocks_without_ray_say_how_to_get_it(tmp_path, monkeypatch, capsys):
+    from recgs_addon.cli import build_parser, main
+
+    monkeypatch.setitem(sys.modules, "ray", None)   # import ray fails as where it is not installed
+    args = ["train", str(tmp_path), "--out", str(tmp_path / "out"), "--blocks", "2"]
+    build_parser().parse_args(args)
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "not installed" in err and "pip install 'ray" in err and "setup.sh --ray" in err
+    assert not (tmp_path / "out").exists()   # nothing written
