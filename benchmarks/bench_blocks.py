@@ -70,6 +70,11 @@ def run(cmd: list[str], log: Path) -> dict:
     return {"wall_s": round(time.perf_counter() - t0, 1), "peak_tree_mb": round(peak[0]), "done": done}
 
 
+def seam_views(out: Path) -> set[str]:
+    """The held-out photos that cross a seam of the split a job in blocks wrote to ``out``."""
+    return set(json.loads((out / "blocks" / "plan.json").read_text())["seam_views"])
+
+
 def score(ply: Path, survey: Path, seams: set[str]) -> dict:
     from recgs_addon.core.blocks.merge import score_views, summarise
     from recgs_addon.core.io.ply import read_gaussian_ply
@@ -100,8 +105,7 @@ def main() -> None:
     py = [sys.executable, "-m", "recgs_addon", "train"]
     one = run(py + common + ["--out", str(one_out)], a.out / "one.log")
     blk = run(py + common + ["--out", str(blk_out), "--blocks", str(a.blocks)], a.out / "blocks.log")
-    plan = json.loads((blk_out / "blocks" / "plan.json").read_text())
-    seams = set(plan["seam_views"])
+    seams = seam_views(blk_out)
     rows = {"one job": (one, score(one_out / "point_cloud.ply", survey, seams)),
             f"{a.blocks} blocks": (blk, score(blk_out / "point_cloud.ply", survey, seams))}
     record = {"survey": str(survey), "minutes": a.minutes, "blocks": a.blocks, "runs": {}}
@@ -134,7 +138,7 @@ def speed(a, survey: Path) -> None:
     for name, threads in ((f"{cores} workers of 1 thread", 1), (f"1 worker of {cores} threads", cores)):
         out = a.out / f"speed_t{threads}"
         r = run(py + ["--out", str(out), "--block-threads", str(threads)], a.out / f"speed_t{threads}.log")
-        s = score(out / "point_cloud.ply", survey, set(r["done"].get("seams", [])))
+        s = score(out / "point_cloud.ply", survey, seam_views(out))
         d = r["done"]
         md.append(f"| {name} | {s['psnr']:.2f} | {d['gaussians']:,} | {d['iterations']:,} | {r['wall_s']:.0f} |")
         record[name] = {"scores": s, "wall_s": r["wall_s"], "gaussians": d["gaussians"], "iterations": d["iterations"]}

@@ -44,16 +44,13 @@ if [ -z "$PY" ]; then
 fi
 
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
-REQ=requirements.txt
-[ "$DEV" = 1 ] && REQ=requirements-dev.txt
-if [ "$DEV" = ray ]; then
-  REQ=$(mktemp)
-  printf -- '-r %s\n-r %s\n' "$PWD/requirements.txt" "$PWD/requirements-ray.txt" > "$REQ"
-fi
+REQ="-r requirements.txt"
+[ "$DEV" = 1 ] && REQ="-r requirements-dev.txt"
+[ "$DEV" = ray ] && REQ="-r requirements.txt -r requirements-ray.txt"
 stamp=".venv/.recgs-$(cat requirements*.txt | sha256sum | cut -c1-16)-$DEV"
 if [ ! -e "$stamp" ]; then
-  echo "setup: installing Python packages from $REQ into .venv"
-  .venv/bin/python -m pip install -q --disable-pip-version-check -r "$REQ" 2>&1 \
+  echo "setup: installing Python packages ($REQ) into .venv"
+  .venv/bin/python -m pip install -q --disable-pip-version-check $REQ 2>&1 \
     | grep -v "is ignored: it is neither a file nor a directory" || true
   .venv/bin/python -c "import bpy, numpy, torch, pycolmap, OpenImageIO" \
     || { echo "setup: the Python packages did not install correctly" >&2; exit 1; }

@@ -68,11 +68,12 @@ def run_blocks(args) -> int:
     try:
         import ray
     except ImportError:
-        return fail("--blocks runs the blocks on Ray, which is not installed: pip install 'ray>=2.9' into the "
-                    "training Python (scripts/setup.sh --ray does)")
+        from ..engine_install import RAY_REQUIREMENT
+
+        return fail(f"--blocks runs the blocks on Ray, which is not installed: pip install '{RAY_REQUIREMENT}' into "
+                    "the training Python (scripts/setup.sh --ray does)")
     from ..core.blocks.split import BlockPlan, plan_blocks
     from ..core.io.ply import read_gaussian_ply, write_gaussian_ply
-    from ..core.train.data import holdout_split
 
     out: Path = args.out
     bdir = out / "blocks"
@@ -85,10 +86,8 @@ def run_blocks(args) -> int:
                 raise RecGSError(f"{plan_path}: no blocks to resume")
             plan = BlockPlan.load(plan_path)
         else:
-            scene = _load_scene(args)
-            names = [c.name for c in scene.cameras]
-            _, test_ids = holdout_split(names, args.holdout_every)
-            plan = plan_blocks(scene, args.blocks, [names[i] for i in test_ids])
+            data = _survey_data(args)   # the cameras, and the survey's held-out photos
+            plan = plan_blocks(data.scene, args.blocks, [data.scene.cameras[i].name for i in data.test_ids])
             bdir.mkdir(parents=True, exist_ok=True)
             plan.save(plan_path)
             init = read_gaussian_ply(args.init_ply) if args.init_ply else None
@@ -99,9 +98,7 @@ def run_blocks(args) -> int:
                     (d / stale).unlink(missing_ok=True)   # a new split starts every block afresh
                 (d / "block.json").write_text(json.dumps(b.config()))
                 if init is not None:   # the artist's edits: each block starts from its part of them
-                    from ..core.blocks.merge import merge_gaussians
-
-                    write_gaussian_ply(d / "init.ply", merge_gaussians([(init, b.grown)])[0])
+                    write_gaussian_ply(d / "init.ply", init.subset(b.grown.contains(init.means)))
     except RecGSError as exc:
         return fail(str(exc))
     (bdir / "STOP").unlink(missing_ok=True)
@@ -158,12 +155,14 @@ def run_blocks(args) -> int:
         return fail(str(exc), detail="the blocks' checkpoints are kept")
 
 
-def _load_scene(args):
-    from ..core.io.colmap import load_scene
-    from ..core.train.data import resolve_image_dir
+def _survey_data(args, gt_images=None):
+    """The whole survey as one job would see it (its photos read only when asked for): its
+    cameras, held-out photos and training sizes."""
+    from ..core.train.config import preset
+    from ..core.train.trainer import load_data
 
-    scene_dir = Path(args.scene_dir)
-    return load_scene(scene_dir, image_dir=resolve_image_dir(scene_dir, args.images) if args.images else None)
+    cfg = preset(args.preset, downscale=args.downscale, max_side=args.max_side, holdout_every=args.holdout_every)
+    return load_data(args.scene_dir, cfg, images=args.images, gt_images=gt_images)
 
 
 def train_block(argv: list[str], out_dir: str, threads: int, stop_file: str) -> dict:
@@ -270,7 +269,7 @@ def _follow(ray, refs: dict, plan, bdir: Path, out: Path, checkpoint_every: floa
             ckpts = sum(e.checkpoints for e in events.values())
             if ckpts > seen_ckpts and now - merged_at >= checkpoint_every:
                 seen_ckpts, merged_at = ckpts, now
-                _preview(plan, bdir, out)
+                _preview(plan, bdir, out, sum(int(e.last.get("iteration") or 0) for e in events.values()))
             if now - said >= 1.0 or not pending:
                 said = now
                 _progress(plan, events, results, now - t0)
@@ -280,6 +279,7 @@ def _follow(ray, refs: dict, plan, bdir: Path, out: Path, checkpoint_every: floa
         e.read()
         results.setdefault(name, {})["starts"] = e.starts
         results[name]["done"] = e.done
+        results[name]["iteration"] = int(e.last.get("iteration") or 0)
     return results, stop.received
 
 
@@ -316,17 +316,7 @@ def _merged(plan, bdir: Path):
     return g, dict(zip(names, kept))
 
 
-def _iterations(bdir: Path, plan) -> int:
-    """Steps the blocks have made, by their last progress events."""
-    total = 0
-    for b in plan.blocks:
-        e = _BlockEvents(bdir / b.name / "events.jsonl")
-        e.read()
-        total += int(e.last.get("iteration") or 0)
-    return total
-
-
-def _preview(plan, bdir: Path, out: Path) -> None:
+def _preview(plan, bdir: Path, out: Path, iteration: int) -> None:
     from ..core.io.ply import write_gaussian_ply
 
     try:
@@ -334,28 +324,25 @@ def _preview(plan, bdir: Path, out: Path) -> None:
         write_gaussian_ply(out / "point_cloud.ply", g)
     except (RecGSError, OSError):   # a block's PLY between writes: the next look tries again
         return
-    emit("checkpoint", ply=str(out / "point_cloud.ply"), gaussians=len(g), iteration=_iterations(bdir, plan))
+    emit("checkpoint", ply=str(out / "point_cloud.ply"), gaussians=len(g), iteration=iteration)
 
 
 def _finish(args, plan, bdir: Path, out: Path, results: dict, stopped, t0: float) -> int:
     from ..core.blocks.merge import score_views, summarise
     from ..core.io.atomic import atomic_path
     from ..core.io.ply import write_gaussian_ply
-    from ..core.train.config import preset
     from ..core.train.data import default_gt_dir
-    from ..core.train.trainer import load_data
 
     g, kept = _merged(plan, bdir)
     write_gaussian_ply(out / "point_cloud.ply", g)
-    emit("checkpoint", ply=str(out / "point_cloud.ply"), gaussians=len(g), iteration=_iterations(bdir, plan))
+    emit("checkpoint", ply=str(out / "point_cloud.ply"), gaussians=len(g),
+         iteration=sum(r.get("iteration", 0) for r in results.values()))
     if stopped:
         emit("done", status="cancelled", reason=f"received {stopped}", gaussians=len(g),
              checkpoint=str(bdir))
         print(f"stopped by {stopped}; every block's checkpoint saved (--resume goes on)", file=sys.stderr)
         return 0
-    cfg = preset(args.preset, downscale=args.downscale, max_side=args.max_side, holdout_every=args.holdout_every)
-    gt = args.gt_images if args.gt_images is not None else default_gt_dir(args.scene_dir)
-    data = load_data(args.scene_dir, cfg, images=args.images, gt_images=gt)
+    data = _survey_data(args, args.gt_images if args.gt_images is not None else default_gt_dir(args.scene_dir))
     seam_images: dict = {}
     scores = score_views(g, data, data.test_ids, set(plan.seam_views), keep=seam_images)
     summary = summarise(scores)

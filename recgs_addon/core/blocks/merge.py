@@ -23,21 +23,14 @@ from ..train.losses import psnr
 
 def merge_gaussians(parts: list[tuple[GaussianSet, Cell]]) -> tuple[GaussianSet, list[int]]:
     """(one GaussianSet, how many each part kept): each part's Gaussians inside its cell."""
-    kept = [(g, cell.contains(g.means)) for g, cell in parts]
-    k = max((g.sh.shape[1] for g, _ in kept), default=1)
-
-    def sh(g: GaussianSet, m: np.ndarray) -> np.ndarray:
-        out = np.zeros((int(m.sum()), k, 3), np.float32)
-        out[:, :g.sh.shape[1]] = g.sh[m]
-        return out
-
-    merged = GaussianSet(
-        means=np.concatenate([g.means[m] for g, m in kept]) if kept else np.zeros((0, 3), np.float32),
-        log_scales=np.concatenate([g.log_scales[m] for g, m in kept]) if kept else np.zeros((0, 3), np.float32),
-        quats=np.concatenate([g.quats[m] for g, m in kept]) if kept else np.zeros((0, 4), np.float32),
-        logit_opacities=np.concatenate([g.logit_opacities[m] for g, m in kept]) if kept else np.zeros(0, np.float32),
-        sh=np.concatenate([sh(g, m) for g, m in kept]) if kept else np.zeros((0, 1, 3), np.float32))
-    return merged, [int(m.sum()) for _, m in kept]
+    kept = [g.subset(cell.contains(g.means)) for g, cell in parts]
+    if not kept:
+        return GaussianSet.empty(), []
+    degree = max(g.sh_degree for g in kept)
+    kept = [g.with_sh_degree(degree) for g in kept]
+    merged = GaussianSet(*(np.concatenate([getattr(g, n) for g in kept])
+                           for n in ("means", "log_scales", "quats", "logit_opacities", "sh")))
+    return merged, [len(g) for g in kept]
 
 
 @dataclass

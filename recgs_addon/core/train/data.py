@@ -19,13 +19,16 @@ from ..model.cameras import Camera
 MIN_IMAGE_SIDE = 8
 
 
-def holdout_split(names: list[str], every: int) -> tuple[list[int], list[int]]:
+def holdout_split(names: list[str], every: int, held: Optional[set] = None) -> tuple[list[int], list[int]]:
     """(train indices, test indices) into ``sorted(names)`` order: every ``every``-th image is
     held out, starting half a period in (every // 2, then every // 2 + every, ...); ``every`` =
-    0 keeps all. LLFF / Mip-NeRF 360 start at the first image, but a survey's first and last
+    0 keeps all. ``held``: the names held out instead (a block of a survey: the survey's own
+    held-out photos that fall in it). LLFF / Mip-NeRF 360 start at the first image, but a survey's first and last
     shots see seabed that no other shot does (the start of the first line, the end of the last):
     a held-out view there scores a hole, not the model."""
     order = sorted(range(len(names)), key=lambda i: names[i])
+    if held is not None:
+        return [i for i in order if names[i] not in held], [i for i in order if names[i] in held]
     if every <= 0:
         return order, []
     first = every // 2
@@ -59,13 +62,8 @@ class TrainData:
         self.max_side = max_side
         self.device = device
         names = [c.name for c in scene.cameras]
-        if test_names is None:
-            self.train_ids, self.test_ids = holdout_split(names, holdout_every)
-        else:   # a block of a survey: the survey's own held-out views that fall in it
-            order = sorted(range(len(names)), key=lambda i: names[i])
-            held = set(test_names)
-            self.train_ids = [i for i in order if names[i] not in held]
-            self.test_ids = [i for i in order if names[i] in held]
+        self.train_ids, self.test_ids = holdout_split(names, holdout_every,
+                                                      None if test_names is None else set(test_names))
         if not self.train_ids:
             raise RecGSError(f"{scene.image_dir}: no training images left after holding out every "
                              f"{holdout_every}th image")
