@@ -87,6 +87,21 @@ SURVEYS.update({
     "dive-water-clear": DIVE + ["--water", "clear", "--altitude", "2.7", "--altitude-swing", "1.1",
                                 "--save-depth", "--seed", "43", "--caustic-strength", "0"],
 })
+# Surveys flown level at one altitude (a diver or a robot keeping its height over lawnmower rows),
+# the camera pitched 15 degrees forward: each seabed point is seen from ranges that differ by the
+# field of view only (about x1.3), the range changes mostly across the image and from point to
+# point. A sandy seabed in green coastal water; a reef-like one (60 rocks: relief, texture and
+# occlusion) in green coastal water, in clear ocean water, and in the coastal water with caustic
+# networks.
+LEVEL = DIVE + ["--altitude", "3.0", "--pitch", "15", "--save-depth"]
+REEF = LEVEL + ["--rocks", "60"]
+SURVEYS.update({
+    "level-water": LEVEL + ["--water", "coastal", "--seed", "61", "--caustic-strength", "0"],
+    "level-reef-water": REEF + ["--water", "coastal", "--seed", "64", "--caustic-strength", "0"],
+    "level-reef-clear": REEF + ["--water", "clear", "--seed", "62", "--caustic-strength", "0"],
+    "level-reef-networks": REEF + ["--water", "coastal", "--seed", "63", "--caustic-pattern", "voronoi",
+                                   "--caustic-strength", "0.9"],
+})
 # A dive survey in deep water lit by a lamp on the camera (tools/survey_lamp.py): no sunlight
 # caustics; clean/ holds the seabed under even light.
 SURVEYS.update({

@@ -9,15 +9,15 @@
   Scores: held-out PSNR of the true-colour render against the true colour (``clean/``), of the
   true-colour photos (``truecolour/``) where the run made them, Gaussians, steps, and the fitted
   coefficients against the generator's.
-* **decisions**: what ``auto`` decides before training on every survey at hand, and why.
+* **decisions**: what ``auto`` decides before training on every survey at hand, and why; what
+  the survey pins of the water, and the sparse points' fit against the generator's water.
 * **step**: seconds a training step takes with and without the water (the same model, blocks
   of steps alternated in one process).
 * **identify**: how well the photos of ``dive-water`` determine each coefficient. (1) Given the
   true colour and the true range of every pixel (what no method has), least squares per channel
   in linear light on 3,000 pixels a view; (2) from the sparse points as training starts (each
-  point's true colour unknown), the points' fit with one channel's backscatter held at half,
-  once and twice the generator's: its error shows how flat the fit is along the veil-rate
-  trade-off; (3) the darkest pixels per range (Sea-thru's backscatter estimate) against the
+  point's true colour unknown), the points' fit and its spread over refits against the
+  generator's; (3) the darkest pixels per range (Sea-thru's backscatter estimate) against the
   generator's veil at that range.
 
 * **passes**: RecGS with the water on ``dive-water-networks``, with and without the pass
@@ -54,8 +54,23 @@ RUNS = [
     ("dive-water-clear", "plain", "3dgs", ["--medium", "off"]),
     ("dive-water-clear", "water", "3dgs", ["--medium", "auto"]),
     ("dive-water-clear", "oracle", "oracle", ["--medium", "off"]),
+    # flown level at one altitude (bench_caustics.py's LEVEL surveys)
+    ("level-reef-water", "water", "3dgs", ["--medium", "auto"]),
+    ("level-reef-water", "oracle", "oracle", ["--medium", "off"]),
+    ("level-reef-water", "plain", "3dgs", ["--medium", "off"]),
+    ("level-reef-clear", "water", "3dgs", ["--medium", "auto"]),
+    ("level-reef-clear", "oracle", "oracle", ["--medium", "off"]),
+    ("level-reef-clear", "plain", "3dgs", ["--medium", "off"]),
+    ("level-reef-networks", "recgs+water", "recgs", ["--medium", "auto"]),
+    ("level-reef-networks", "oracle", "oracle", ["--medium", "off"]),
+    ("level-reef-networks", "water", "3dgs", ["--medium", "auto"]),
+    ("level-reef-networks", "plain", "3dgs", ["--medium", "off"]),
+    ("level-water", "water", "3dgs", ["--medium", "auto"]),
+    ("level-water", "oracle", "oracle", ["--medium", "off"]),
 ]
-DECISION_SURVEYS = ["dive-water", "dive-water-networks", "dive-water-clear", "dive-none", "dive-networks", "sample-none", "networks"]
+DECISION_SURVEYS = ["dive-water", "dive-water-networks", "dive-water-clear", "level-water", "level-reef-water",
+                    "level-reef-clear", "level-reef-networks", "dive-none", "dive-networks", "sample-none", "networks",
+                    "dive-lamp"]
 
 
 def _rel_errors(fitted: dict, truth: dict) -> dict:
@@ -63,9 +78,11 @@ def _rel_errors(fitted: dict, truth: dict) -> dict:
     return {k: [round(abs(f - t) / t, 3) for f, t in zip(fitted[k], truth[v])] for k, v in pairs.items()}
 
 
-def runs(out: Path, minutes: float) -> None:
+def runs(out: Path, minutes: float, surveys: list[str] | None = None) -> None:
     jobs = []
     for survey, name, method, extra in RUNS:
+        if surveys and survey not in surveys:
+            continue
         scene = survey_dir(out, survey)
         jobs.append((survey, name, scene, out / "water" / survey / name, method, extra))
     with ThreadPoolExecutor(2) as pool:
@@ -84,7 +101,8 @@ def runs(out: Path, minutes: float) -> None:
                                    for k in ("attenuation", "backscatter", "veil")}
         rows.append(row)
         print(json.dumps(row), flush=True)
-    (out / "water" / "runs.json").write_text(json.dumps(rows, indent=1))
+    (out / "water" / ("runs.json" if not surveys else f"runs-{'+'.join(surveys)}.json")).write_text(
+        json.dumps(rows, indent=1))
     print("\n| survey | run | true colour, held-out (dB) | true-colour photos (dB) | Gaussians | steps |")
     print("|---|---|---|---|---|---|")
     for r in rows:
@@ -93,18 +111,25 @@ def runs(out: Path, minutes: float) -> None:
               f"{r['gaussians']:,} | {r['steps']:,} |")
 
 
-def decisions(out: Path) -> None:
+def decisions(out: Path, surveys: list[str] | None = None) -> None:
+    from recgs_addon.core.caustics.build import make_method
+    from recgs_addon.core.caustics.config import CausticConfig
     from recgs_addon.core.train.config import preset
-    from recgs_addon.core.train.trainer import make_trainer
 
-    for name in DECISION_SURVEYS:
+    for name in surveys or DECISION_SURVEYS:
         scene = survey_dir(out, name)
         t = time.perf_counter()
-        tr = make_trainer(scene, preset("default", medium="auto"))
+        tr = make_method(scene, preset("default", medium="auto"), CausticConfig(mode="3dgs")).trainer  # as a job does
         info = tr.medium_info
-        print(json.dumps({"survey": name, "modelled": tr.medium is not None, "seconds": round(time.perf_counter() - t, 1),
-                          "range_spread": round(info.get("range_spread", 0), 3), "prefit": info.get("prefit"),
-                          "reason": info["reason"]}), flush=True)
+        row = {"survey": name, "modelled": tr.medium is not None, "seconds": round(time.perf_counter() - t, 1),
+               "range_spread": round(info.get("range_spread", 0), 3), "prefit": info.get("prefit"),
+               "reason": info["reason"], "lamp": tr.lamp is not None, "cues": info.get("cues"), "pinning": {k: v for k, v in (info.get("pinning") or {}).items() if k != "z"}}
+        meta = json.loads((scene / "survey.json").read_text()) if (scene / "survey.json").is_file() else {}
+        if info.get("prefit_fit") and meta.get("water"):
+            truth = meta["water"]
+            row["points_fit"] = {k: [round(v, 4) for v in info["prefit_fit"][k]] for k in ("attenuation", "backscatter", "veil")}
+            row["points_fit_errors"] = _rel_errors(info["prefit_fit"], truth)
+        print(json.dumps(row), flush=True)
 
 
 def step_cost(out: Path, steps: int = 60, blocks: int = 4, grown=(600, 2500)) -> None:
@@ -139,14 +164,12 @@ def step_cost(out: Path, steps: int = 60, blocks: int = 4, grown=(600, 2500)) ->
 
 def identify(out: Path, survey: str = "dive-water", per_view: int = 3000, steps: int = 6000) -> None:
     """See the module: ``--only identify``."""
-    from unittest import mock
-
     import numpy as np
     import torch
 
     from recgs_addon.core.io.images import read_image
     from recgs_addon.core.model.colour import srgb_to_linear
-    from recgs_addon.core.model.medium import Medium, ray_lengths
+    from recgs_addon.core.model.medium import ray_lengths
     from recgs_addon.core.train import water
     from recgs_addon.core.train.config import preset
     from recgs_addon.core.train.trainer import make_trainer
@@ -186,21 +209,10 @@ def identify(out: Path, survey: str = "dive-water", per_view: int = 3000, steps:
     tr = make_trainer(scene, preset("default", medium="off", eval_every=10**9))
     obs = water._observations(tr.data)
     water._sample_colours(tr.data, obs)
-    length = water.range_profile(obs)["median_range"]
-    for c in range(3):
-        for factor in (0.5, 1.0, 2.0):
-            held = factor * gen[1][c]
-
-            class Held(Medium):
-                def coefficients(self, raw=None):
-                    att, back, veil = super().coefficients(raw)
-                    return att, torch.cat([back[:c], back.new_tensor([held]), back[c + 1:]]), veil
-            with mock.patch.object(water, "Medium", Held):
-                fit = water.fit_from_points(obs, length, steps=steps)
-            v = fit["medium"].values()
-            print(json.dumps({"part": "from the sparse points", "channel": c, "backscatter_held": round(held, 3),
-                              "error_levels": round(fit["error_water"], 4), "veil": round(v["veil"][c], 4),
-                              "attenuation": round(v["attenuation"][c], 4)}), flush=True)
+    fit = water.fit_from_points(obs, water.range_profile(obs)["median_range"])
+    print(json.dumps({"part": "from the sparse points", "fit": {k: np.round(v, 4).tolist() for k, v in fit["fit"].items()},
+                      "spread": {k: np.round(v, 4).tolist() for k, v in fit["spread"].items()},
+                      "relative_error": _rel_errors(fit["fit"], truth)}), flush=True)
 
     r = rng.numpy()
     edges = np.percentile(r, np.linspace(2, 98, 9))
@@ -258,15 +270,17 @@ def main() -> int:
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench")
     p.add_argument("--minutes", type=float, default=5.0)
     p.add_argument("--only", choices=("runs", "decisions", "step", "identify", "passes"), default=None)
+    p.add_argument("--surveys", default="", help="runs and decisions: these surveys only (comma-separated)")
     a = p.parse_args()
+    surveys = [x for x in a.surveys.split(",") if x] or None
     if a.only in (None, "decisions"):
-        decisions(a.out)
+        decisions(a.out, surveys)
     if a.only in (None, "step"):
         step_cost(a.out)
     if a.only in (None, "identify"):
         identify(a.out)
     if a.only in (None, "runs"):
-        runs(a.out, a.minutes)
+        runs(a.out, a.minutes, surveys)
     if a.only in (None, "passes"):
         pass_water(a.out, a.minutes)
     return 0

@@ -198,8 +198,10 @@ def _light_section(light: Optional[dict], mode: Optional[str], lamp: dict) -> li
 def _water_section(medium: dict) -> list[str]:
     """The fitted water: coefficients per channel (and what the sparse points gave before training)."""
     coef = medium.get("coefficients")
-    if not coef:
-        return []
+    if not coef:   # not modelled: why, and what the survey pins of it
+        if not medium.get("pinning"):
+            return []
+        return ["", "## The water", "", f"Not modelled: {medium.get('reason', '')}."] + _water_pinning(medium)
     rgb = lambda v: " / ".join(f"{x:.3f}" for x in v)  # noqa: E731
     lines = ["", "## The water", "",
              "Fitted with the Gaussians, which hold the seabed's true colour; `medium.json` has the numbers and "
@@ -211,13 +213,41 @@ def _water_section(medium: dict) -> list[str]:
     if pre:
         lines.append(f"| from the sparse points, before training | {rgb(pre['attenuation'])} | "
                      f"{rgb(pre['backscatter'])} | {rgb(pre['veil'])} |")
-    if medium.get("attenuation_from_points"):
-        lines += ["", "The attenuation is the sparse points' (their colour change from view to view is mostly the "
-                      "water's, and their ranges are exact); training fitted the rest."]
+    lines += _water_pinning(medium) + _water_kept(medium)
+    if medium.get("cues"):
+        lines += ["", "Where the fit disagrees with what natural waters and seabeds look like (said, not overruled):", ""]
+        lines += [f"- {c[0].upper() + c[1:]}." for c in medium["cues"]]
     if medium.get("range_p5_p95"):
         lo, hi = medium["range_p5_p95"]
         lines += ["", f"Ranges seen: {lo:.2f} to {hi:.2f} (5th to 95th percentile); each point is seen from "
                       f"ranges a median x{medium['range_spread']:.2f} apart."]
+    return lines
+
+
+def _water_pinning(medium: dict) -> list[str]:
+    """What the survey pins of the water (core/train/water.py's ``pinning``): a line per coefficient."""
+    pins, fit, spread = medium.get("pinning"), medium.get("prefit_fit"), medium.get("prefit_spread")
+    lines = []
+    if pins and fit and spread:
+        lines += ["", "What the survey's ranges pin (the sparse points' fit refitted on points drawn again: its value "
+                      "+- the refits' spread; pinned within 10 %, loose within 30 %, else free):", "",
+                  "| | red | green | blue |", "|---|---|---|---|"]
+        names = {"attenuation": "attenuation", "veil_at_length": "veil at the median range",
+                 "backscatter": "backscatter", "veil": "veil"}
+        for key, name in names.items():
+            cells = [f"{v:.3f} +- {e:.3f} ({p})" for v, e, p in zip(fit[key], spread[key], pins[key])]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _water_kept(medium: dict) -> list[str]:
+    """Which channels' attenuation training kept from the sparse points."""
+    lines = []
+    kept = medium.get("attenuation_kept") or ([True] * 3 if medium.get("attenuation_from_points") else None)
+    if kept and any(kept):
+        chans = ", ".join(n for n, k in zip(("red", "green", "blue"), kept) if k)
+        lines += ["", f"The attenuation of {chans} is the sparse points' (pinned by the survey, and their ranges are "
+                      "exact); training fitted the rest from every pixel."]
     return lines
 
 

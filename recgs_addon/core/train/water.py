@@ -8,11 +8,18 @@ from the seabed's colour:
    hardly changes from view to view (the median over points of its farthest over its nearest
    view, below :data:`MIN_RANGE_SPREAD`), water and colour are one per-channel scale and offset
    the photos cannot separate, and the run is plain. Otherwise the water and each point's true
-   colour are fitted to the points' colours in the photos (:func:`fit_from_points`); unless the
-   water explains :data:`MIN_ERROR_GAIN` of their colour change from view to view and changes
-   them by :data:`MIN_EFFECT` 8-bit levels, the run is plain. The fit starts the water and the
-   Gaussians' colours; where the water explains :data:`TRUST_ATTENUATION` or more, its
-   attenuation is kept through training.
+   colour are fitted to the points' colours in the photos (:func:`fit_from_points`,
+   core/model/medium_fit.py), and refitted on the points drawn again to measure how well the
+   survey pins each coefficient. The water is modelled where the photos show it: the
+   attenuation of some channel at least :data:`MIN_Z` of its spreads above 0, the channels'
+   attenuations as far apart (water takes red first; a fall-off alike in every channel is the
+   light's: a lamp, the exposure), and the fitted water changing the points' colours by
+   :data:`MIN_EFFECT` 8-bit levels. A share of the
+   points' colour change would not do: on a textured seabed seen from one height the texture's
+   noise is most of it however strong the water. The fit starts the water and the Gaussians'
+   colours; a channel's attenuation pinned within :data:`PINNED` of its value is kept through
+   training (the render's depth runs slightly short of the surface, which training would take
+   for stronger water), the rest trains with the Gaussians, from every pixel.
 2. **At the end**, if the trained water changes the training views by less than
    :data:`MIN_EFFECT` (mean absolute difference, 8-bit levels) between the seabed seen through
    it and the seabed alone, it is left out of the outputs.
@@ -29,6 +36,7 @@ import torch
 
 from . import numba_water
 from ..model.colour import linear_to_srgb, srgb_to_linear
+from ..model import medium_fit
 from ..model.medium import Medium, out_of_water, ray_lengths
 
 #: Median over sparse points of (farthest / nearest training view's range) below which the
@@ -40,17 +48,18 @@ MIN_EFFECT = 2.0
 DECIDE_VIEWS = 8
 #: Adam's learning rate for the medium's raw parameters (softplus / logit space) in training.
 LR_MEDIUM = 0.01
-#: Adam steps of the fit to the sparse points before training.
-PREFIT_STEPS = 1500
-#: ... and their learning rate for the water's raw parameters.
-PREFIT_LR = 0.05
-#: Share of the no-water fit's error the water must take away to be kept (auto).
-MIN_ERROR_GAIN = 0.05
-#: Share above which the points' colour change is mostly the water's, and their fit's attenuation
-#: is kept through training (measured on a coastal survey, 65 %: within 1-3 % of the generator's
-#: from the points, 4-17 % when trained on, since the render's depth runs slightly short of the
-#: surface; with sharp caustics, 11 %: the points gave 18-32 % and training 3-10 %).
-TRUST_ATTENUATION = 0.3
+#: Attenuation over its spread (the refits') above which a channel shows water (auto).
+MIN_Z = 4.0
+#: A coefficient whose refits spread by at most this share of its value is pinned by the survey;
+#: a pinned attenuation is kept through training.
+PINNED = 0.1
+#: ... by at most this share, loosely pinned (the report says so).
+LOOSE = 0.3
+#: The seabed's average true colour, brightest over weakest channel (linear), beyond which the
+#: report says the colour is strongly tinted (a grey-world cue, not a rule).
+GREY_WORLD = 3.0
+#: Refits of the points' water on points drawn again (core/model/medium_fit.py).
+BOOT_ROUNDS = 8
 
 
 def _observations(data, max_points: int = 6000) -> dict:
@@ -120,22 +129,22 @@ def range_profile(obs: dict) -> dict:
             "range_p5_p95": [float(np.percentile(r, 5)), float(np.percentile(r, 95))]}
 
 
-def fit_from_points(obs: dict, length: float, steps: int = PREFIT_STEPS, max_observations: int = 12_000,
+def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, rounds: int = BOOT_ROUNDS,
                     device="cpu") -> dict:
     """Fit the water and each sparse point's true colour to the points' colours in the photos
-    at their ranges (L1 in linear light, where the model is a sum and no power curve is paid
-    for on every step: occlusions and texture are outliers), and the same points without water
-    (one colour each, their median). Returns the fitted :class:`Medium`, the points' true colours
-    (sRGB), and both fits' mean error and the water's mean effect in 8-bit sRGB levels."""
+    at their ranges (core/model/medium_fit.py: robust, each point's colour eliminated, in linear
+    light), and the same points without water (one colour each, their median). Returns the
+    fitted :class:`Medium` (``None`` where the fit found no attenuation in any channel), the
+    points' true colours (sRGB), both fits' mean error and the water's mean effect in 8-bit sRGB
+    levels, the coefficients as fitted (``"fit"``: the attenuation of any sign) and with
+    ``rounds`` their spread over refits (``"spread"``)."""
     point, rng, colour = obs["point"], obs["range"], obs["colour"]
     if len(point) > max_observations:
         keep = np.sort(np.random.default_rng(1).choice(len(point), max_observations, replace=False))
         point, rng, colour = point[keep], rng[keep], colour[keep]
     n = len(obs["points"])
-    pt = torch.from_numpy(point)
-    r = torch.from_numpy(rng).float().unsqueeze(1)
     seen = torch.from_numpy(colour).float()
-    seen_lin = srgb_to_linear(seen)
+    fit = medium_fit.fit_water(point, n, rng, srgb_to_linear(seen).double().numpy(), length, rounds=rounds)
     # no water: each point's median colour
     order = np.argsort(point, kind="stable")
     bounds = np.flatnonzero(np.diff(point[order])) + 1
@@ -144,28 +153,63 @@ def fit_from_points(obs: dict, length: float, steps: int = PREFIT_STEPS, max_obs
     if len(ids):
         groups = np.split(colour[order], bounds)
         plain[torch.from_numpy(ids)] = torch.from_numpy(np.stack([np.median(g, 0) for g in groups])).float()
-    medium = Medium(length, veil=[float(v) for v in seen_lin.quantile(0.01, dim=0).clamp(0.005, 0.9)])
-    true = torch.nn.Parameter(srgb_to_linear(plain))
-    opt = torch.optim.Adam([{"params": [medium.raw], "lr": PREFIT_LR}, {"params": [true], "lr": 0.02}])
-    for _ in range(steps):
-        att, back, veil = medium.coefficients()
-        fitted = true[pt] * torch.exp(-att * r) + veil * (1.0 - torch.exp(-back * r))
-        loss = (fitted - seen_lin).abs().mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        with torch.no_grad():
-            true.clamp_(0.0, 1.0)
+    medium = Medium.from_values({"attenuation": np.clip(fit["attenuation"], 1e-4, None), "length": length,
+                                 "backscatter": fit["backscatter"], "veil": np.clip(fit["veil"], 1e-4, 1 - 1e-4)})
+    pt = torch.from_numpy(point)
+    r = torch.from_numpy(rng).float()
     with torch.no_grad():
-        true_srgb = linear_to_srgb(true)
+        true_srgb = linear_to_srgb(torch.from_numpy(fit["J"]).float().clamp(0.0, 1.0))
         ones = torch.ones(len(pt))
-        fitted = medium.see(true_srgb[pt], ones, r[:, 0], ones)
+        fitted = medium.see(true_srgb[pt], ones, r, ones)
         err_plain = float((seen - plain[pt]).abs().mean()) * 255
         err_water = float((fitted - seen).abs().mean()) * 255
         effect = float((fitted - true_srgb[pt]).abs().mean()) * 255
     medium.raw = torch.nn.Parameter(medium.raw.detach().to(device))
-    return {"medium": medium, "true": true_srgb.numpy(), "error_plain": err_plain,
-            "error_water": err_water, "effect_levels": effect, "observations": int(len(pt))}
+    return {"medium": medium, "true": true_srgb.numpy(), "error_plain": err_plain, "error_water": err_water,
+            "effect_levels": effect, "observations": int(len(pt)), "gain": fit["gain"],
+            "fit": {k: fit[k] for k in ("attenuation", "backscatter", "veil", "veil_at_length")},
+            "J_mean": np.clip(fit["J"][np.unique(point)], 0.0, 1.0).mean(0).tolist() if len(point) else [],
+            "spread": fit.get("spread")}
+
+
+def cues(fit: dict) -> list[str]:
+    """Where the fitted water disagrees with what natural waters and seabeds look like, a
+    sentence each (the report shows them; nothing is overruled). In every natural water, from
+    clear ocean (Jerlov's type I) to turbid coast (9C), red is taken fastest, and the veil is
+    blue-green; a seabed's average true colour is not strongly tinted (the grey-world cue that
+    colour constancy and Sea-thru's illuminant estimate rest on)."""
+    att, veil = fit["fit"]["attenuation"], fit["fit"]["veil"]
+    out = []
+    if att[0] < max(att[1], att[2]):
+        out.append("the fitted attenuation takes red less than " + ("green" if att[1] > att[2] else "blue")
+                   + ", unlike any natural water: the survey's colours may change with range for another reason "
+                     "(a lamp, vignetting towards the far edge)")
+    if veil[0] > max(veil[1], veil[2]):
+        out.append("the fitted veil is reddest, unlike the blue-green of natural waters")
+    j = np.asarray(fit.get("J_mean") or [], np.float64)
+    if j.size == 3 and j.min() > 0:
+        ratio = float(j.max() / j.min())
+        if ratio > GREY_WORLD:
+            name = ("red", "green", "blue")[int(j.argmax())]
+            out.append(f"the seabed's average true colour comes out {ratio:.1f} times as bright in {name} as in "
+                       f"its weakest channel: either the seabed is that colour or the water is not what was fitted")
+    return out
+
+
+def pinning(fit: dict) -> dict:
+    """How well the survey pins each coefficient (:func:`fit_from_points` with ``rounds``): per
+    coefficient and channel ``"pinned"``, ``"loose"`` or ``"free"`` (the refits' spread over the
+    value at most :data:`PINNED`, :data:`LOOSE`, or more), and each channel's attenuation over
+    its spread (``"z"``)."""
+    spread = fit.get("spread")
+    if not spread:
+        return {}
+    out = {}
+    for k in ("attenuation", "backscatter", "veil", "veil_at_length"):
+        rel = [sd / max(abs(v), 1e-9) for sd, v in zip(spread[k], fit["fit"][k])]
+        out[k] = ["pinned" if x <= PINNED else "loose" if x <= LOOSE else "free" for x in rel]
+    out["z"] = [v / max(sd, 1e-12) for v, sd in zip(fit["fit"]["attenuation"], spread["attenuation"])]
+    return out
 
 
 class MediumMixin:
@@ -196,24 +240,48 @@ class MediumMixin:
         _sample_colours(self.data, obs)
         self._unlit(obs)
         fit = fit_from_points(obs, prof["median_range"], device=self.device)
-        gain = 1.0 - fit["error_water"] / max(fit["error_plain"], 1e-9)
+        pins = pinning(fit)
+        rgb = lambda v, f="{:.3f}": " / ".join(f.format(x) for x in v)  # noqa: E731
         self.medium_info.update(prefit={k: round(fit[k], 3) if isinstance(fit[k], float) else fit[k]
-                                        for k in ("error_plain", "error_water", "effect_levels", "observations")},
-                                prefit_coefficients=fit["medium"].values())
-        if c.medium == "auto" and (gain < MIN_ERROR_GAIN or fit["effect_levels"] < MIN_EFFECT):
+                                        for k in ("error_plain", "error_water", "effect_levels", "observations",
+                                                  "gain")},
+                                prefit_coefficients=fit["medium"].values(), prefit_fit=fit["fit"],
+                                prefit_spread=fit["spread"], pinning=pins, cues=cues(fit))
+        z = pins["z"]
+        if c.medium == "auto" and max(z) < MIN_Z:
+            sd = fit["spread"]["attenuation"]
             self.medium_info["reason"] = (
-                f"water fitted to the sparse points changes their colours by {fit['effect_levels']:.1f} levels of "
-                f"255 and explains {100 * gain:.0f} % of their colour change from view to view (needs "
-                f"{MIN_EFFECT:g} levels and {100 * MIN_ERROR_GAIN:.0f} %): no measurable water")
+                "the sparse points show no attenuation beyond their noise (per unit of range, red / green / blue "
+                + " / ".join(f"{a:.3f} +- {e:.3f}" for a, e in zip(fit["fit"]["attenuation"], sd))
+                + f"; needs {MIN_Z:g} spreads above 0): no measurable water")
+            return
+        att, sd = np.asarray(fit["fit"]["attenuation"]), np.asarray(fit["spread"]["attenuation"])
+        hi, lo = int(att.argmax()), int(att.argmin())
+        z_colour = (att[hi] - att[lo]) / max(float(np.hypot(sd[hi], sd[lo])), 1e-12)
+        if c.medium == "auto" and z_colour < MIN_Z:
+            self.medium_info["reason"] = (
+                f"the sparse points' colours fall off with range alike in every channel (attenuation {rgb(att)} per "
+                f"unit of range, the channels {z_colour:.1f} error bars apart, needs {MIN_Z:g}): the light's fall-off "
+                "(a lamp, the exposure), not the water, which takes red first: no measurable water")
+            return
+        if c.medium == "auto" and fit["effect_levels"] < MIN_EFFECT:
+            self.medium_info["reason"] = (
+                f"the water fitted to the sparse points (attenuation {rgb(fit['fit']['attenuation'])}) changes their "
+                f"colours by {fit['effect_levels']:.1f} levels of 255, below {MIN_EFFECT:g}: too weak to matter, "
+                "no measurable water")
             return
         self.medium = fit["medium"]
         self.medium_optimizer = torch.optim.Adam([self.medium.raw], lr=LR_MEDIUM, eps=1e-15)
         self._prefit = {"points": obs["points"], "true": fit["true"]}
-        self.medium_info["attenuation_from_points"] = gain >= TRUST_ATTENUATION
-        self.medium_info.update(fitted=True, kept=True,
-                                reason=f"water explains {100 * gain:.0f} % of the sparse points' colour change "
-                                       f"from view to view and changes the photos by {fit['effect_levels']:.1f} "
-                                       "levels of 255")
+        kept = [p == "pinned" for p in pins["attenuation"]]
+        self.medium_info["attenuation_kept"] = kept
+        self.medium_info["attenuation_from_points"] = all(kept)
+        names = [n for n, k in zip(("red", "green", "blue"), kept) if k]
+        self.medium_info.update(fitted=True, kept=True, reason=(
+            f"the sparse points show water: attenuation {rgb(fit['fit']['attenuation'])} per unit of range ("
+            f"{rgb(z, '{:.0f}')} times its spread), changing their colours by {fit['effect_levels']:.1f} levels of "
+            f"255; the survey pins the attenuation of {', '.join(names) if names else 'no channel'} within "
+            f"{100 * PINNED:.0f} %"))
 
     def _unlit(self, obs: dict) -> None:
         """The observations' colours with the lamp's light taken out (where the run models a
@@ -280,8 +348,12 @@ class MediumMixin:
 
     def _medium_step(self) -> None:
         if self.medium_optimizer is not None:
-            if self.medium_info.get("attenuation_from_points") and self.medium.raw.grad is not None:
-                self.medium.raw.grad[0] = 0.0   # the points measured it better than the render's depth can
+            kept = self.medium_info.get("attenuation_kept")
+            if kept is None and self.medium_info.get("attenuation_from_points"):   # a checkpoint's older form
+                kept = [True] * 3
+            if kept and any(kept) and self.medium.raw.grad is not None:
+                # the points measured it better than the render's depth can
+                self.medium.raw.grad[0, torch.tensor(kept, device=self.medium.raw.device)] = 0.0
             self.medium_optimizer.step()
             self.medium_optimizer.zero_grad(set_to_none=True)
 
