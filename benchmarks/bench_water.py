@@ -24,6 +24,11 @@
   estimator's water correction (each frame compared at its own range; without it, the frames'
   colours as seen), side by side: what the correction adds on its own.
 
+* **pixels**: on a survey flown at one altitude (``--surveys``, default ``level-reef-water``), what
+  the survey pins kept from the sparse points through training (the default) against the veil
+  trained from every pixel (``veil-trained``) or everything (``all-trained``, ``--pixel-runs``),
+  from the same start, side by side.
+
 Surveys come from benchmarks/bench_caustics.py (generated once into OUT/surveys).
 """
 from __future__ import annotations
@@ -265,11 +270,53 @@ def pass_water(out: Path, minutes: float) -> None:
               flush=True)
 
 
+#: Run by ``pixels``: the train command with a module constant of core/train/water.py changed.
+_VARIANT = """
+import sys
+from recgs_addon.core.train import water
+water.{} = {}
+from recgs_addon.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+#: name -> how the train command runs: the default, the veil trained, nothing kept from the points
+_PIXEL_RUNS = {"points-kept": ["-m", "recgs_addon"],
+               "veil-trained": ["-c", _VARIANT.format("KEEP_VEIL", "False")],
+               "all-trained": ["-c", _VARIANT.format("PINNED", "-1.0")]}
+
+
+def pixels(out: Path, minutes: float, survey: str = "level-reef-water", runs=("points-kept", "veil-trained")) -> None:
+    """See the module: ``--only pixels``."""
+    import os
+    import subprocess
+
+    scene = survey_dir(out, survey)
+    truth = json.loads((scene / "survey.json").read_text())["water"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
+    procs = {}
+    for name, head in ((n, _PIXEL_RUNS[n]) for n in runs):
+        dest = out / "water" / "pixels" / survey / name
+        cmd = [sys.executable, *head, "train", str(scene), "--out", str(dest), "--mode", "3dgs", "--density", "adc",
+               "--medium", "auto", "--max-minutes", str(minutes)]
+        procs[name] = (subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                        env=env), dest)
+    for name, (proc, dest) in procs.items():
+        err = proc.communicate()[1]
+        if proc.returncode != 0:
+            raise SystemExit(f"{name} failed:\n{err[-2000:]}")
+        m = json.loads((dest / "metrics.json").read_text())
+        coef = (m.get("medium") or {}).get("coefficients")
+        print(json.dumps({"run": name, "survey": survey, "true_colour_held_out": m.get("psnr_test_gt"),
+                          "true_colour_photos": m.get("psnr_truecolour_gt"), "steps": m["iterations"],
+                          "gaussians": m["gaussians"],
+                          "coefficient_errors": _rel_errors(coef, truth) if coef else None}), flush=True)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench")
     p.add_argument("--minutes", type=float, default=5.0)
-    p.add_argument("--only", choices=("runs", "decisions", "step", "identify", "passes"), default=None)
+    p.add_argument("--only", choices=("runs", "decisions", "step", "identify", "passes", "pixels"), default=None)
+    p.add_argument("--pixel-runs", default="points-kept,veil-trained", help="pixels: which (comma-separated)")
     p.add_argument("--surveys", default="", help="runs and decisions: these surveys only (comma-separated)")
     a = p.parse_args()
     surveys = [x for x in a.surveys.split(",") if x] or None
@@ -283,6 +330,9 @@ def main() -> int:
         runs(a.out, a.minutes, surveys)
     if a.only in (None, "passes"):
         pass_water(a.out, a.minutes)
+    if a.only in (None, "pixels"):
+        for survey in surveys or ["level-reef-water"]:
+            pixels(a.out, a.minutes, survey, a.pixel_runs.split(","))
     return 0
 
 

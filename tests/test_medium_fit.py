@@ -107,3 +107,40 @@ def test_the_attenuation_error_bar_matches_its_spread_over_surveys():
     spread = np.std(fits, ddof=1)
     assert 0.5 < np.median(sds) / spread < 2.0, (np.median(sds), spread, fits)
     assert abs(np.mean(fits) - TRUE["attenuation"][1]) < 3 * spread
+
+
+def _fit_dict(att, sd, effect=20.0):
+    return {"fit": {"attenuation": att, "backscatter": [0.3] * 3, "veil": [0.02, 0.08, 0.07],
+                    "veil_at_length": [0.01, 0.05, 0.04]},
+            "spread": {"attenuation": sd, "backscatter": [1.0] * 3, "veil": [0.1] * 3, "veil_at_length": [0.001] * 3},
+            "effect_levels": effect}
+
+
+def test_water_is_modelled_where_the_attenuation_is_coloured_clear_of_its_error_and_matters():
+    f = _fit_dict([0.5, 0.12, 0.18], [0.01, 0.01, 0.01])
+    shown, why = water.decide(f, water.pinning(f))
+    assert shown and "show water" in why
+    # a fall-off alike in every channel: the light's (a lamp, the exposure), not water
+    f = _fit_dict([0.030, 0.028, 0.027], [0.004, 0.004, 0.004])
+    shown, why = water.decide(f, water.pinning(f))
+    assert not shown and "alike in every channel" in why
+    # attenuation within its noise of 0
+    f = _fit_dict([0.02, -0.01, 0.01], [0.05, 0.05, 0.05])
+    shown, why = water.decide(f, water.pinning(f))
+    assert not shown and "no attenuation beyond their noise" in why
+    # measured, but changes the photos by less than the threshold
+    f = _fit_dict([0.05, 0.01, 0.01], [0.002, 0.002, 0.002], effect=1.0)
+    shown, why = water.decide(f, water.pinning(f))
+    assert not shown and "too weak to matter" in why
+
+
+def test_cues_say_where_the_fit_is_unlike_natural_water():
+    f = _fit_dict([0.1, 0.3, 0.2], [0.01] * 3)
+    f["J_mean"] = [0.3, 0.3, 0.3]
+    assert any("takes red less than green" in c for c in water.cues(f))
+    f = _fit_dict([0.5, 0.12, 0.18], [0.01] * 3)
+    f["J_mean"] = [0.6, 0.15, 0.1]
+    said = water.cues(f)
+    assert len(said) == 1 and "6.0 times as bright in red" in said[0]
+    f["J_mean"] = [0.3, 0.25, 0.2]
+    assert water.cues(f) == []

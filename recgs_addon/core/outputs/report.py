@@ -229,8 +229,9 @@ def _water_pinning(medium: dict) -> list[str]:
     pins, fit, spread = medium.get("pinning"), medium.get("prefit_fit"), medium.get("prefit_spread")
     lines = []
     if pins and fit and spread:
-        lines += ["", "What the survey's ranges pin (the sparse points' fit refitted on points drawn again: its value "
-                      "+- the refits' spread; pinned within 10 %, loose within 30 %, else free):", "",
+        lines += ["", "What the survey's ranges pin (the sparse points' fit +- its error bar, the spread of refits on "
+                      "points drawn again or the Gauss-Newton error, whichever is larger; pinned within 10 %, loose "
+                      "within 30 %, else free):", "",
                   "| | red | green | blue |", "|---|---|---|---|"]
         names = {"attenuation": "attenuation", "veil_at_length": "veil at the median range",
                  "backscatter": "backscatter", "veil": "veil"}

@@ -11,7 +11,7 @@ from the seabed's colour:
    colour are fitted to the points' colours in the photos (:func:`fit_from_points`,
    core/model/medium_fit.py), and refitted on the points drawn again to measure how well the
    survey pins each coefficient. The water is modelled where the photos show it: the
-   attenuation of some channel at least :data:`MIN_Z` of its spreads above 0, the channels'
+   attenuation of some channel at least :data:`MIN_Z` of its error bars above 0, the channels'
    attenuations as far apart (water takes red first; a fall-off alike in every channel is the
    light's: a lamp, the exposure), and the fitted water changing the points' colours by
    :data:`MIN_EFFECT` 8-bit levels. A share of the
@@ -19,7 +19,8 @@ from the seabed's colour:
    noise is most of it however strong the water. The fit starts the water and the Gaussians'
    colours; a channel's attenuation pinned within :data:`PINNED` of its value is kept through
    training (the render's depth runs slightly short of the surface, which training would take
-   for stronger water), the rest trains with the Gaussians, from every pixel.
+   for stronger water), and its veil where the survey pins that too (:data:`KEEP_VEIL`); the
+   rest trains with the Gaussians, from every pixel.
 2. **At the end**, if the trained water changes the training views by less than
    :data:`MIN_EFFECT` (mean absolute difference, 8-bit levels) between the seabed seen through
    it and the seabed alone, it is left out of the outputs.
@@ -48,13 +49,18 @@ MIN_EFFECT = 2.0
 DECIDE_VIEWS = 8
 #: Adam's learning rate for the medium's raw parameters (softplus / logit space) in training.
 LR_MEDIUM = 0.01
-#: Attenuation over its spread (the refits') above which a channel shows water (auto).
+#: Attenuation over its error bar above which a channel shows water (auto).
 MIN_Z = 4.0
-#: A coefficient whose refits spread by at most this share of its value is pinned by the survey;
+#: A coefficient whose error bar is at most this share of its value is pinned by the survey;
 #: a pinned attenuation is kept through training.
 PINNED = 0.1
 #: ... by at most this share, loosely pinned (the report says so).
 LOOSE = 0.3
+#: Keep the veil (its rate and colour) from the points too, per channel, where the attenuation is
+#: pinned and the veil at the median range at least loosely (on a clear-water survey flown at one
+#: altitude training moved the green and blue veil at the median range 45-160 % off, where the
+#: points had them within 4 %).
+KEEP_VEIL = True
 #: The seabed's average true colour, brightest over weakest channel (linear), beyond which the
 #: report says the colour is strongly tinted (a grey-world cue, not a rule).
 GREY_WORLD = 3.0
@@ -196,6 +202,36 @@ def cues(fit: dict) -> list[str]:
     return out
 
 
+def _rgb(v, f="{:.3f}") -> str:
+    return " / ".join(f.format(x) for x in v)
+
+
+def decide(fit: dict, pins: dict) -> tuple[bool, str]:
+    """Whether the photos show water (:func:`fit_from_points` with its error bars, their
+    :func:`pinning`), and why: some channel's attenuation :data:`MIN_Z` error bars above 0, the
+    channels' as far apart (water takes red first; a fall-off alike in every channel is the
+    light's), and a change to the points' colours of :data:`MIN_EFFECT` levels."""
+    att, sd = np.asarray(fit["fit"]["attenuation"]), np.asarray(fit["spread"]["attenuation"])
+    z = pins["z"]
+    if max(z) < MIN_Z:
+        return False, ("the sparse points show no attenuation beyond their noise (per unit of range, red / green / "
+                       "blue " + " / ".join(f"{a:.3f} +- {e:.3f}" for a, e in zip(att, sd))
+                       + f"; needs {MIN_Z:g} error bars above 0): no measurable water")
+    hi, lo = int(att.argmax()), int(att.argmin())
+    z_colour = (att[hi] - att[lo]) / max(float(np.hypot(sd[hi], sd[lo])), 1e-12)
+    if z_colour < MIN_Z:
+        return False, (f"the sparse points' colours fall off with range alike in every channel (attenuation "
+                       f"{_rgb(att)} per unit of range, the channels {z_colour:.1f} error bars apart, needs "
+                       f"{MIN_Z:g}): the light's fall-off (a lamp, the exposure), not the water, which takes red "
+                       "first: no measurable water")
+    if fit["effect_levels"] < MIN_EFFECT:
+        return False, (f"the water fitted to the sparse points (attenuation {_rgb(att)}) changes their colours by "
+                       f"{fit['effect_levels']:.1f} levels of 255, below {MIN_EFFECT:g}: too weak to matter, no "
+                       "measurable water")
+    return True, (f"the sparse points show water: attenuation {_rgb(att)} per unit of range ({_rgb(z, '{:.0f}')} "
+                  f"times its error bar), changing their colours by {fit['effect_levels']:.1f} levels of 255")
+
+
 def pinning(fit: dict) -> dict:
     """How well the survey pins each coefficient (:func:`fit_from_points` with ``rounds``): per
     coefficient and channel ``"pinned"``, ``"loose"`` or ``"free"`` (the refits' spread over the
@@ -241,34 +277,14 @@ class MediumMixin:
         self._unlit(obs)
         fit = fit_from_points(obs, prof["median_range"], device=self.device)
         pins = pinning(fit)
-        rgb = lambda v, f="{:.3f}": " / ".join(f.format(x) for x in v)  # noqa: E731
         self.medium_info.update(prefit={k: round(fit[k], 3) if isinstance(fit[k], float) else fit[k]
                                         for k in ("error_plain", "error_water", "effect_levels", "observations",
                                                   "gain")},
                                 prefit_coefficients=fit["medium"].values(), prefit_fit=fit["fit"],
                                 prefit_spread=fit["spread"], pinning=pins, cues=cues(fit))
-        z = pins["z"]
-        if c.medium == "auto" and max(z) < MIN_Z:
-            sd = fit["spread"]["attenuation"]
-            self.medium_info["reason"] = (
-                "the sparse points show no attenuation beyond their noise (per unit of range, red / green / blue "
-                + " / ".join(f"{a:.3f} +- {e:.3f}" for a, e in zip(fit["fit"]["attenuation"], sd))
-                + f"; needs {MIN_Z:g} spreads above 0): no measurable water")
-            return
-        att, sd = np.asarray(fit["fit"]["attenuation"]), np.asarray(fit["spread"]["attenuation"])
-        hi, lo = int(att.argmax()), int(att.argmin())
-        z_colour = (att[hi] - att[lo]) / max(float(np.hypot(sd[hi], sd[lo])), 1e-12)
-        if c.medium == "auto" and z_colour < MIN_Z:
-            self.medium_info["reason"] = (
-                f"the sparse points' colours fall off with range alike in every channel (attenuation {rgb(att)} per "
-                f"unit of range, the channels {z_colour:.1f} error bars apart, needs {MIN_Z:g}): the light's fall-off "
-                "(a lamp, the exposure), not the water, which takes red first: no measurable water")
-            return
-        if c.medium == "auto" and fit["effect_levels"] < MIN_EFFECT:
-            self.medium_info["reason"] = (
-                f"the water fitted to the sparse points (attenuation {rgb(fit['fit']['attenuation'])}) changes their "
-                f"colours by {fit['effect_levels']:.1f} levels of 255, below {MIN_EFFECT:g}: too weak to matter, "
-                "no measurable water")
+        shown, why = decide(fit, pins)
+        if c.medium == "auto" and not shown:
+            self.medium_info["reason"] = why
             return
         self.medium = fit["medium"]
         self.medium_optimizer = torch.optim.Adam([self.medium.raw], lr=LR_MEDIUM, eps=1e-15)
@@ -276,11 +292,13 @@ class MediumMixin:
         kept = [p == "pinned" for p in pins["attenuation"]]
         self.medium_info["attenuation_kept"] = kept
         self.medium_info["attenuation_from_points"] = all(kept)
+        # the veil too where the survey pins its value over the ranges seen (its rate may be free:
+        # then the ranges seen do not depend on it)
+        self.medium_info["veil_kept"] = [KEEP_VEIL and k and p != "free"
+                                         for k, p in zip(kept, pins["veil_at_length"])]
         names = [n for n, k in zip(("red", "green", "blue"), kept) if k]
         self.medium_info.update(fitted=True, kept=True, reason=(
-            f"the sparse points show water: attenuation {rgb(fit['fit']['attenuation'])} per unit of range ("
-            f"{rgb(z, '{:.0f}')} times its spread), changing their colours by {fit['effect_levels']:.1f} levels of "
-            f"255; the survey pins the attenuation of {', '.join(names) if names else 'no channel'} within "
+            f"{why}; the survey pins the attenuation of {', '.join(names) if names else 'no channel'} within "
             f"{100 * PINNED:.0f} %"))
 
     def _unlit(self, obs: dict) -> None:
@@ -351,9 +369,14 @@ class MediumMixin:
             kept = self.medium_info.get("attenuation_kept")
             if kept is None and self.medium_info.get("attenuation_from_points"):   # a checkpoint's older form
                 kept = [True] * 3
-            if kept and any(kept) and self.medium.raw.grad is not None:
-                # the points measured it better than the render's depth can
-                self.medium.raw.grad[0, torch.tensor(kept, device=self.medium.raw.device)] = 0.0
+            veil = self.medium_info.get("veil_kept") or [False] * 3
+            if self.medium.raw.grad is not None:
+                # the points measured them better than the render's depth and holes let training
+                dev = self.medium.raw.device
+                if kept and any(kept):
+                    self.medium.raw.grad[0, torch.tensor(kept, device=dev)] = 0.0
+                if any(veil):
+                    self.medium.raw.grad[1:, torch.tensor(veil, device=dev)] = 0.0
             self.medium_optimizer.step()
             self.medium_optimizer.zero_grad(set_to_none=True)
 
