@@ -144,3 +144,6 @@ def test_cues_say_where_the_fit_is_unlike_natural_water():
     assert len(said) == 1 and "6.0 times as bright in red" in said[0]
     f["J_mean"] = [0.3, 0.25, 0.2]
     assert water.cues(f) == []
+    f = _fit_dict([0.5, 0.2, 0.1], [0.01] * 3)   # blue travels furthest, but the veil is greenest
+    f["J_mean"] = [0.3, 0.25, 0.2]
+    assert [c for c in water.cues(f) if "brightest in green but the water takes blue least" in c]

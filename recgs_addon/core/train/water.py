@@ -182,7 +182,7 @@ def cues(fit: dict) -> list[str]:
     """Where the fitted water disagrees with what natural waters and seabeds look like, a
     sentence each (the report shows them; nothing is overruled). In every natural water, from
     clear ocean (Jerlov's type I) to turbid coast (9C), red is taken fastest, and the veil is
-    blue-green; a seabed's average true colour is not strongly tinted (the grey-world cue that
+    blue-green, brightest in the colour the water takes least; a seabed's average true colour is not strongly tinted (the grey-world cue that
     colour constancy and Sea-thru's illuminant estimate rest on)."""
     att, veil = fit["fit"]["attenuation"], fit["fit"]["veil"]
     out = []
@@ -190,13 +190,18 @@ def cues(fit: dict) -> list[str]:
         out.append("the fitted attenuation takes red less than " + ("green" if att[1] > att[2] else "blue")
                    + ", unlike any natural water: the survey's colours may change with range for another reason "
                      "(a lamp, vignetting towards the far edge)")
+    names = ("red", "green", "blue")
     if veil[0] > max(veil[1], veil[2]):
         out.append("the fitted veil is reddest, unlike the blue-green of natural waters")
+    elif int(np.argmax(veil)) != int(np.argmin(att)):
+        out.append(f"the fitted veil is brightest in {names[int(np.argmax(veil))]} but the water takes "
+                   f"{names[int(np.argmin(att))]} least: in natural waters the light scattered back is the colour "
+                   "that travels furthest")
     j = np.asarray(fit.get("J_mean") or [], np.float64)
     if j.size == 3 and j.min() > 0:
         ratio = float(j.max() / j.min())
         if ratio > GREY_WORLD:
-            name = ("red", "green", "blue")[int(j.argmax())]
+            name = names[int(j.argmax())]
             out.append(f"the seabed's average true colour comes out {ratio:.1f} times as bright in {name} as in "
                        f"its weakest channel: either the seabed is that colour or the water is not what was fitted")
     return out
