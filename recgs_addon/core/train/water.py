@@ -20,9 +20,7 @@ from the seabed's colour:
    colours; a channel's attenuation pinned within :data:`PINNED` of its value is kept through
    training (the render's depth runs slightly short of the surface, which training would take
    for stronger water), and its veil where the survey pins that too (:data:`KEEP_VEIL`); the
-   rest trains with the Gaussians, from every pixel. Where caustics were found on the photos
-   (core/caustics/light.py) nothing is kept: they move the points' colours, which the points'
-   fit does not model, and training fits the caustic-free targets.
+   rest trains with the Gaussians, from every pixel.
 2. **At the end**, if the trained water changes the training views by less than
    :data:`MIN_EFFECT` (mean absolute difference, 8-bit levels) between the seabed seen through
    it and the seabed alone, it is left out of the outputs.
@@ -296,22 +294,17 @@ class MediumMixin:
         self.medium = fit["medium"]
         self.medium_optimizer = torch.optim.Adam([self.medium.raw], lr=LR_MEDIUM, eps=1e-15)
         self._prefit = {"points": obs["points"], "true": fit["true"]}
-        # caustics found on the photos move the points' colours, which their fit does not model
-        # (measured: attenuation 26-48 % high under sharp networks): training fits the water on
-        # the caustic-free targets instead
-        caustics = bool((getattr(self, "light", None) or {}).get("caustics"))
-        kept = [p == "pinned" and not caustics for p in pins["attenuation"]]
+        kept = [p == "pinned" for p in pins["attenuation"]]
         self.medium_info["attenuation_kept"] = kept
         self.medium_info["attenuation_from_points"] = all(kept)
         # the veil too where the survey pins its value over the ranges seen (its rate may be free:
         # then the ranges seen do not depend on it)
         self.medium_info["veil_kept"] = [KEEP_VEIL and k and p != "free"
                                          for k, p in zip(kept, pins["veil_at_length"])]
-        pinned = [n for n, p in zip(("red", "green", "blue"), pins["attenuation"]) if p == "pinned"]
+        names = [n for n, k in zip(("red", "green", "blue"), kept) if k]
         self.medium_info.update(fitted=True, kept=True, reason=(
-            f"{why}; the survey pins the attenuation of {', '.join(pinned) if pinned else 'no channel'} within "
-            f"{100 * PINNED:.0f} %" + ("; the caustics move the points' colours, so training fits the water"
-                                       if caustics and pinned else "")))
+            f"{why}; the survey pins the attenuation of {', '.join(names) if names else 'no channel'} within "
+            f"{100 * PINNED:.0f} %"))
 
     def _unlit(self, obs: dict) -> None:
         """The observations' colours with the lamp's light taken out (where the run models a
