@@ -14,9 +14,9 @@ from the seabed's colour:
    attenuation of some channel at least :data:`MIN_Z` of its error bars above 0, the channels'
    attenuations as far apart (water takes red first; a fall-off alike in every channel is the
    light's: a lamp, the exposure), and the fitted water changing the points' colours by
-   :data:`MIN_EFFECT` 8-bit levels. A share of the
-   points' colour change would not do: on a textured seabed seen from one height the texture's
-   noise is most of it however strong the water. The fit starts the water and the Gaussians'
+   :data:`MIN_EFFECT` 8-bit levels. A share of the points' colour change would not do: on a
+   textured seabed seen from one height the texture's noise is most of it however strong the
+   water. The fit starts the water and the Gaussians'
    colours; a channel's attenuation pinned within :data:`PINNED` of its value is kept through
    training (the render's depth runs slightly short of the surface, which training would take
    for stronger water), and its veil where the survey pins that too (:data:`KEEP_VEIL`); the
