@@ -244,25 +244,35 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
-def pass_water(out: Path, minutes: float) -> None:
-    """See the module: ``--only passes``."""
+def _side_by_side(scene: Path, dest: Path, runs: dict, options: list[str]) -> dict:
+    """The train command on ``scene`` once per ``runs`` entry (name -> the interpreter's
+    arguments before ``train``), all at once on one thread each, into ``dest / name``; each
+    run's metrics by name."""
     import os
     import subprocess
 
-    scene = survey_dir(out, "dive-water-networks")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
     procs = {}
-    for name, head in (("corrected", ["-m", "recgs_addon"]), ("uncorrected", ["-c", _NO_PASS_WATER])):
-        dest = out / "water" / "passes" / name
-        cmd = [sys.executable, *head, "train", str(scene), "--out", str(dest), "--mode", "recgs",
-               "--estimator", "passes", "--medium", "auto", "--max-minutes", str(minutes)]
-        procs[name] = (subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                                        env=env), dest)
-    for name, (proc, dest) in procs.items():
+    for name, head in runs.items():
+        cmd = [sys.executable, *head, "train", str(scene), "--out", str(dest / name), *options]
+        procs[name] = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                       env=env)
+    metrics = {}
+    for name, proc in procs.items():
         err = proc.communicate()[1]
         if proc.returncode != 0:
             raise SystemExit(f"{name} failed:\n{err[-2000:]}")
-        m = json.loads((dest / "metrics.json").read_text())
+        metrics[name] = json.loads((dest / name / "metrics.json").read_text())
+    return metrics
+
+
+def pass_water(out: Path, minutes: float) -> None:
+    """See the module: ``--only passes``."""
+    runs = {"corrected": ["-m", "recgs_addon"], "uncorrected": ["-c", _NO_PASS_WATER]}
+    metrics = _side_by_side(survey_dir(out, "dive-water-networks"), out / "water" / "passes", runs,
+                            ["--mode", "recgs", "--estimator", "passes", "--medium", "auto", "--max-minutes",
+                             str(minutes)])
+    for name, m in metrics.items():
         print(json.dumps({"run": name, "true_colour_held_out": m.get("psnr_test_gt"),
                           "true_colour_photos": m.get("psnr_truecolour_gt"), "steps": m["iterations"],
                           "gaussians": m["gaussians"], "estimator": m.get("estimator"),
@@ -286,24 +296,11 @@ _PIXEL_RUNS = {"points-kept": ["-m", "recgs_addon"],
 
 def pixels(out: Path, minutes: float, survey: str = "level-reef-water", runs=("points-kept", "veil-trained")) -> None:
     """See the module: ``--only pixels``."""
-    import os
-    import subprocess
-
     scene = survey_dir(out, survey)
     truth = json.loads((scene / "survey.json").read_text())["water"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
-    procs = {}
-    for name, head in ((n, _PIXEL_RUNS[n]) for n in runs):
-        dest = out / "water" / "pixels" / survey / name
-        cmd = [sys.executable, *head, "train", str(scene), "--out", str(dest), "--mode", "3dgs", "--density", "adc",
-               "--medium", "auto", "--max-minutes", str(minutes)]
-        procs[name] = (subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                                        env=env), dest)
-    for name, (proc, dest) in procs.items():
-        err = proc.communicate()[1]
-        if proc.returncode != 0:
-            raise SystemExit(f"{name} failed:\n{err[-2000:]}")
-        m = json.loads((dest / "metrics.json").read_text())
+    metrics = _side_by_side(scene, out / "water" / "pixels" / survey, {n: _PIXEL_RUNS[n] for n in runs},
+                            ["--mode", "3dgs", "--density", "adc", "--medium", "auto", "--max-minutes", str(minutes)])
+    for name, m in metrics.items():
         coef = (m.get("medium") or {}).get("coefficients")
         print(json.dumps({"run": name, "survey": survey, "true_colour_held_out": m.get("psnr_test_gt"),
                           "true_colour_photos": m.get("psnr_truecolour_gt"), "steps": m["iterations"],

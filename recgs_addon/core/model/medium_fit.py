@@ -66,12 +66,14 @@ def _robust_scale(res: torch.Tensor, w: torch.Tensor) -> float:
 
 
 def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, length: float,
-                w: torch.Tensor | None = None, start=(0.1, 0.3, 0.0), warm: bool = False) -> dict:
+                w: torch.Tensor | None = None, start=(0.1, 0.3, 0.0), warm: bool = False,
+                errors: bool = True) -> dict:
     """One channel's water from observations ``pt`` (K,) point ids below ``n``, ranges ``r`` and
     linear colours ``y`` (K,), observation weights ``w``; ``start``: (attenuation, backscatter
     rate, veil at ``length``), ``warm``: the start is a fit's (else the rate starts at each of
-    :data:`COLD_RATES` and the veil halfway to its bound). Returns the three, each point's colour ``J`` (n,), the robust loss
-    with the water and without it (``J`` alone), and the Huber scale both are measured in."""
+    :data:`COLD_RATES` and the veil halfway to its bound). Returns the three, each point's
+    colour ``J`` (n,), the robust loss with the water and without it (``J`` alone), the Huber
+    scale both are measured in, and with ``errors`` the three's Gauss-Newton variances."""
     r, y = r.double(), y.double()
     w = torch.ones_like(y) if w is None else w.double()
     # without water: each point's robust mean; its residuals set the scale both losses use
@@ -140,7 +142,8 @@ def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, leng
         cap * float(torch.sigmoid(theta[2]))
     return {"attenuation": att, "backscatter": rate, "veil_at_length": v_len,
             "J": j.float(), "loss_water": _huber_loss(res, scale, w), "loss_plain": _huber_loss(res0, scale, w),
-            "scale": scale, "variance": _variances(pt, n, r, y, length, w * h, res, (att, rate, v_len))}
+            "scale": scale,
+            "variance": _variances(pt, n, r, y, length, w * h, res, (att, rate, v_len)) if errors else None}
 
 
 def _variances(pt, n, r, y, length, wh, res, values) -> np.ndarray:
@@ -187,7 +190,7 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     and ``veil_at_length``; ``J`` (n, 3) the points' linear colours; ``gain`` the share of the
     points' robust colour change from view to view the water takes away; with ``rounds``:
     ``spread`` (per coefficient and channel, the standard deviation of the refits or the
-    Gauss-Newton standard error, whichever is larger; absolute) and ``gain_spread``."""
+    Gauss-Newton standard error, whichever is larger; absolute)."""
     pt = torch.from_numpy(np.asarray(point, np.int64))
     r = torch.from_numpy(np.asarray(rng, np.float64))
     y = torch.from_numpy(np.asarray(colour_lin, np.float64))
@@ -197,17 +200,18 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     if rounds > 0:
         gen = torch.Generator().manual_seed(seed)
         used = torch.unique(pt)
-        draws = {k: [] for k in ("attenuation", "backscatter", "veil", "veil_at_length", "gain")}
+        draws = {k: [] for k in ("attenuation", "backscatter", "veil", "veil_at_length")}
         for _ in range(rounds):
             pick = used[torch.randint(len(used), (len(used),), generator=gen)]
             count = torch.zeros(n, dtype=torch.float64).index_add_(0, pick, torch.ones(len(pick), dtype=torch.float64))
             w = count[pt]
             refit = _collect([fit_channel(pt, n, r, y[:, c], length, w,
-                                          start=(f["attenuation"], f["backscatter"], f["veil_at_length"]), warm=True)
+                                          start=(f["attenuation"], f["backscatter"], f["veil_at_length"]), warm=True,
+                                          errors=False)
                               for c, f in enumerate(fits)], length)
             for k in draws:
                 draws[k].append(refit[k])
-        boot = {k: np.std(np.asarray(v, np.float64), axis=0, ddof=1) for k, v in draws.items() if k != "gain"}
+        boot = {k: np.std(np.asarray(v, np.float64), axis=0, ddof=1) for k, v in draws.items()}
         # refits started from the fit cannot leave a flat valley: the spread is at least the
         # Gauss-Newton standard error (infinite where nothing pins a number)
         sd = np.sqrt(np.array([f["variance"] for f in fits]))          # (channel, [att, rate, veil at length])
@@ -216,7 +220,6 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
                                                    for f, ei in zip(fits, e)]) * sd[:, 1])
         gn = {"attenuation": sd[:, 0], "backscatter": sd[:, 1], "veil_at_length": sd[:, 2], "veil": veil_sd}
         out["spread"] = {k: np.maximum(boot[k], gn[k]).tolist() for k in boot}
-        out["gain_spread"] = float(np.std(draws["gain"], ddof=1))
         out["rounds"] = rounds
     return out
 

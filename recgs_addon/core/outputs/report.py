@@ -242,14 +242,16 @@ def _water_pinning(medium: dict) -> list[str]:
 
 
 def _water_kept(medium: dict) -> list[str]:
-    """Which channels' attenuation training kept from the sparse points."""
-    lines = []
+    """Which channels' attenuation (and veil) training kept from the sparse points."""
+    names = ("red", "green", "blue")
     kept = medium.get("attenuation_kept") or ([True] * 3 if medium.get("attenuation_from_points") else None)
-    if kept and any(kept):
-        chans = ", ".join(n for n, k in zip(("red", "green", "blue"), kept) if k)
-        lines += ["", f"The attenuation of {chans} is the sparse points' (pinned by the survey, and their ranges are "
-                      "exact); training fitted the rest from every pixel."]
-    return lines
+    if not (kept and any(kept)):
+        return []
+    veil = [n for n, k in zip(names, medium.get("veil_kept") or []) if k]
+    return ["", f"The attenuation of {', '.join(n for n, k in zip(names, kept) if k)}"
+                + (f" and the veil of {', '.join(veil)}" if veil else "")
+                + (" are" if veil else " is") + " the sparse points' (pinned by the survey, and their ranges are exact); training fitted the "
+                  "rest from every pixel."]
 
 
 def _water_example(out: Path, rd: Path, method) -> list[str]:

@@ -66,6 +66,8 @@ KEEP_VEIL = True
 GREY_WORLD = 3.0
 #: Refits of the points' water on points drawn again (core/model/medium_fit.py).
 BOOT_ROUNDS = 8
+#: The colour channels, as the reasons and cues name them.
+CHANNELS = ("red", "green", "blue")
 
 
 def _observations(data, max_points: int = 6000) -> dict:
@@ -140,8 +142,8 @@ def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, ro
     """Fit the water and each sparse point's true colour to the points' colours in the photos
     at their ranges (core/model/medium_fit.py: robust, each point's colour eliminated, in linear
     light), and the same points without water (one colour each, their median). Returns the
-    fitted :class:`Medium` (``None`` where the fit found no attenuation in any channel), the
-    points' true colours (sRGB), both fits' mean error and the water's mean effect in 8-bit sRGB
+    fitted :class:`Medium` (its attenuation at least 1e-4 a unit of range), the points' true
+    colours (sRGB), both fits' mean error and the water's mean effect in 8-bit sRGB
     levels, the coefficients as fitted (``"fit"``: the attenuation of any sign) and with
     ``rounds`` their spread over refits (``"spread"``)."""
     point, rng, colour = obs["point"], obs["range"], obs["colour"]
@@ -182,15 +184,16 @@ def cues(fit: dict) -> list[str]:
     """Where the fitted water disagrees with what natural waters and seabeds look like, a
     sentence each (the report shows them; nothing is overruled). In every natural water, from
     clear ocean (Jerlov's type I) to turbid coast (9C), red is taken fastest, and the veil is
-    blue-green, brightest in the colour the water takes least; a seabed's average true colour is not strongly tinted (the grey-world cue that
-    colour constancy and Sea-thru's illuminant estimate rest on)."""
+    blue-green, brightest in the colour the water takes least; a seabed's average true colour is
+    not strongly tinted (the grey-world cue that colour constancy and Sea-thru's illuminant
+    estimate rest on)."""
     att, veil = fit["fit"]["attenuation"], fit["fit"]["veil"]
     out = []
     if att[0] < max(att[1], att[2]):
         out.append("the fitted attenuation takes red less than " + ("green" if att[1] > att[2] else "blue")
                    + ", unlike any natural water: the survey's colours may change with range for another reason "
                      "(a lamp, vignetting towards the far edge)")
-    names = ("red", "green", "blue")
+    names = CHANNELS
     if veil[0] > max(veil[1], veil[2]):
         out.append("the fitted veil is reddest, unlike the blue-green of natural waters")
     elif int(np.argmax(veil)) != int(np.argmin(att)):
@@ -265,6 +268,7 @@ class MediumMixin:
         self.medium_info: dict = {"mode": c.medium, "fitted": False, "kept": False, "reason": "medium off"}
         self._ray_len: dict = {}
         self._prefit: Optional[dict] = None
+        self._held: Optional[torch.Tensor] = None   # the water's numbers kept from the points
         if c.medium == "off":
             return
         obs = _observations(self.data)
@@ -304,10 +308,11 @@ class MediumMixin:
         # then the ranges seen do not depend on it)
         self.medium_info["veil_kept"] = [KEEP_VEIL and k and p != "free"
                                          for k, p in zip(kept, pins["veil_at_length"])]
-        names = [n for n, k in zip(("red", "green", "blue"), kept) if k]
+        names = [n for n, k in zip(CHANNELS, kept) if k]
         self.medium_info.update(fitted=True, kept=True, reason=(
             f"{why}; the survey pins the attenuation of {', '.join(names) if names else 'no channel'} within "
             f"{100 * PINNED:.0f} %"))
+        self._hold_points_water()
 
     def _unlit(self, obs: dict) -> None:
         """The observations' colours with the lamp's light taken out (where the run models a
@@ -372,19 +377,21 @@ class MediumMixin:
             return numba_water.see(out.rgb, rng, *self.medium.coefficients())   # numba's threads, one pass
         return self.medium.see_at(out.rgb, rng)
 
+    def _hold_points_water(self) -> None:
+        """Which of the water's raw parameters (rows: attenuation, backscatter, veil; columns:
+        channels) training leaves as the points gave them: ``self._held``, ``None`` for none. The
+        points measured them better than the render's depth and holes would let training."""
+        kept = self.medium_info.get("attenuation_kept")
+        if kept is None:   # a checkpoint's older form: all three or none
+            kept = [bool(self.medium_info.get("attenuation_from_points"))] * 3
+        veil = self.medium_info.get("veil_kept") or [False] * 3
+        held = torch.tensor([kept, veil, veil], dtype=torch.bool, device=self.medium.raw.device)
+        self._held = held if bool(held.any()) else None
+
     def _medium_step(self) -> None:
         if self.medium_optimizer is not None:
-            kept = self.medium_info.get("attenuation_kept")
-            if kept is None and self.medium_info.get("attenuation_from_points"):   # a checkpoint's older form
-                kept = [True] * 3
-            veil = self.medium_info.get("veil_kept") or [False] * 3
-            if self.medium.raw.grad is not None:
-                # the points measured them better than the render's depth and holes let training
-                dev = self.medium.raw.device
-                if kept and any(kept):
-                    self.medium.raw.grad[0, torch.tensor(kept, device=dev)] = 0.0
-                if any(veil):
-                    self.medium.raw.grad[1:, torch.tensor(veil, device=dev)] = 0.0
+            if self._held is not None and self.medium.raw.grad is not None:
+                self.medium.raw.grad[self._held] = 0.0
             self.medium_optimizer.step()
             self.medium_optimizer.zero_grad(set_to_none=True)
 
@@ -432,4 +439,5 @@ class MediumMixin:
         if s.get("optimizer") is not None:
             self.medium_optimizer.load_state_dict(s["optimizer"])
         self.medium_info = dict(s["info"])
+        self._hold_points_water()
 
