@@ -99,6 +99,15 @@ def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, leng
         z = y - v_len * _veil_curve(rate, r, length)
         return a, z
 
+    def residuals(t, wh):
+        """Each observation's error with every point's colour projected out, and the colours."""
+        a, z = parts(t)
+        j = _point_colours(pt, n, a, z, wh)
+        return z - j[pt] * a, j
+
+    def loss_of(t, wh):
+        return (wh * residuals(t, wh)[0] ** 2).sum() / wh.sum().clamp_min(1e-12) / scale ** 2
+
     def minimise(theta, wh, iterations):
         theta = theta.clone().requires_grad_(True)
         opt = torch.optim.LBFGS([theta], lr=1, max_iter=iterations, tolerance_grad=1e-10, tolerance_change=1e-12,
@@ -106,17 +115,12 @@ def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, leng
 
         def closure():
             opt.zero_grad()
-            a, z = parts(theta)
-            j = _point_colours(pt, n, a, z, wh)
-            loss = (wh * (z - j[pt] * a) ** 2).sum() / wh.sum().clamp_min(1e-12) / scale ** 2
+            loss = loss_of(theta, wh)
             loss.backward()
             return loss
         opt.step(closure)
         with torch.no_grad():
-            a, z = parts(theta)
-            j = _point_colours(pt, n, a, z, wh)
-            value = float((wh * (z - j[pt] * a) ** 2).sum() / wh.sum().clamp_min(1e-12) / scale ** 2)
-        return theta.detach(), value
+            return theta.detach(), float(loss_of(theta, wh))
 
     # the veil's rate is weakly pinned and its loss has more than one valley: a cold start tries
     # several rates (a warm start, from a fit on the same survey, one)
@@ -127,17 +131,13 @@ def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, leng
     theta = min((minimise(t, w * h, 100) for t in starts), key=lambda tl: tl[1])[0]
     for k in range(IRLS_ROUNDS):
         with torch.no_grad():
-            a, z = parts(theta)
-            j = _point_colours(pt, n, a, z, w * h)
-            res = z - j[pt] * a
+            res = residuals(theta, w * h)[0]
             # Huber's convex loss first, then the biweight from there: far errors (occlusion,
             # a misplaced point) are left out rather than only bounded
             h = _huber_weights(res, scale) if k < IRLS_ROUNDS // 2 else _tukey_weights(res, _robust_scale(res, w))
         theta = minimise(theta, w * h, 40)[0]
     with torch.no_grad():
-        a, z = parts(theta)
-        j = _point_colours(pt, n, a, z, w * h)
-        res = z - j[pt] * a
+        res, j = residuals(theta, w * h)
     att, rate, v_len = float(theta[0]), float(np.exp(lo + (hi - lo) * torch.sigmoid(theta[1]))), \
         cap * float(torch.sigmoid(theta[2]))
     return {"attenuation": att, "backscatter": rate, "veil_at_length": v_len,
