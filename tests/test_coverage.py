@@ -9,7 +9,7 @@ from conftest import write_rendered_scene
 from recgs_addon.core.errors import SceneError
 from recgs_addon.core.io.frames import read_frame_times, write_frame_times
 from recgs_addon.core.train.config import preset
-from recgs_addon.core.train.coverage import passes_of, sparse_coverage, surface_coverage
+from recgs_addon.core.train.coverage import correlation, looks_of, passes_of, sparse_coverage, surface_coverage
 from recgs_addon.core.train.trainer import make_trainer
 
 
@@ -62,3 +62,15 @@ def test_sparse_and_surface_coverage_count_the_views_that_see_a_point(scene, tmp
     write_frame_times(burst, {c.name: 0.1 * k for k, c in enumerate(sorted(data.scene.cameras, key=lambda c: c.name))})
     b = sparse_coverage(make_trainer(burst, preset("default", holdout_every=0, compiled=False)).data)
     assert b.median_views == sparse.median_views and b.median_passes == 1
+
+
+def test_looks_count_frames_by_how_much_light_they_share():
+    rng = np.random.default_rng(0)
+    seen = rng.random((40, 15)) < 0.5
+    times = np.sort(rng.random(15) * 6)
+    rho = correlation(list(times), 0.7).double().numpy()
+    brute = [np.linalg.solve(rho[np.ix_(s, s)], np.ones(s.sum())).sum() if s.any() else 0.0 for s in seen]
+    assert np.allclose(looks_of(seen, times, 0.7), brute, rtol=1e-5)
+    assert np.array_equal(looks_of(seen, None), seen.sum(1))           # photos: each a look
+    video = np.ones((1, 30), bool)                                     # 10 s at 3 frames a second
+    assert 7 < looks_of(video, np.arange(30) / 3.0)[0] < 13            # about one look a second

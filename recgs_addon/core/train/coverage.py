@@ -32,6 +32,11 @@ from .data import view_tensors
 #: Frames of one video less than this many seconds apart saw nearly the same light at a point
 #: (the waves that focus it move at 0.2-0.5 Hz): one of them counts as independent.
 PASS_SECONDS = 1.0
+#: The light's decorrelation time assumed until a survey's own is measured (seconds): light at a
+#: point shares ``exp(-dt / LIGHT_SECONDS)`` of its variance between frames ``dt`` apart, so a
+#: video at 3 frames a second gives about one independent look a second, as :data:`PASS_SECONDS`
+#: counts them (``caustics.passes.light_statistics`` measures a survey's own).
+LIGHT_SECONDS = 0.5
 #: Relative depth agreement that counts a point as unoccluded in a view.
 DEPTH_TOL = 0.03
 #: Long side (pixels) of the depth renders the surface coverage tests against.
@@ -58,18 +63,49 @@ class Coverage:
     share_below: dict = field(default_factory=dict)   # views -> share of points seen by fewer
     histogram: list = field(default_factory=list)     # views 0..30 (the last bin: 30 or more)
     source: str = "sparse"
+    median_looks: float = 0.0                         # independent looks at the light (:func:`looks_of`)
 
     def summary(self) -> dict:
         return asdict(self)
 
 
-def _summarise(counts: np.ndarray, passes: np.ndarray, source: str) -> Coverage:
+def _summarise(counts: np.ndarray, passes: np.ndarray, source: str, looks: np.ndarray) -> Coverage:
     if counts.size == 0:
         return Coverage(0, 0.0, 0.0, source=source)
     hist = np.bincount(np.minimum(counts, 30), minlength=31)
     below = {str(n): float(np.mean(counts < n)) for n in (3, 5, 8)}
     return Coverage(int(counts.size), float(np.median(counts)), float(np.median(passes)), below,
-                    [int(h) for h in hist], source)
+                    [int(h) for h in hist], source, round(float(np.median(looks)), 2))
+
+
+def correlation(times, light_seconds: float = LIGHT_SECONDS) -> torch.Tensor:
+    """(F, F) the light's correlation between frames at ``times`` (seconds; None: a photo
+    without a time, independent of every other): ``exp(-|t_f - t_g| / light_seconds)``."""
+    n = len(times)
+    if n == 0 or any(t is None for t in times) or not light_seconds > 0:
+        return torch.eye(n)
+    t = torch.tensor([float(x) for x in times], dtype=torch.float64)
+    return torch.exp(-(t[:, None] - t[None, :]).abs() / light_seconds).float()
+
+
+def looks_of(seen: np.ndarray, times: Optional[np.ndarray] = None, light_seconds: float = LIGHT_SECONDS) -> np.ndarray:
+    """(P,) independent looks at the light per point from ``seen`` (P, V) bool over views in
+    time order (``times`` (V,) seconds): how many independent samples of the light its views
+    are worth, ``1' rho^-1 1`` for the light's correlation ``rho`` between them
+    (:func:`correlation`). For that exponential correlation it sums over each point's views in
+    time order, ``1 + sum (1 - a) / (1 + a)`` with ``a = exp(-dt / light_seconds)`` between a
+    view and the one before: a view of the same instant adds nothing, one of independent light
+    adds 1. The count of views where ``times`` is None."""
+    counts = seen.sum(1).astype(np.float64)
+    if times is None or seen.shape[1] == 0 or not light_seconds > 0:
+        return counts
+    looks = np.zeros(seen.shape[0])
+    last = np.full(seen.shape[0], -np.inf)
+    for v in range(seen.shape[1]):
+        a = np.exp(-(times[v] - last) / light_seconds)
+        looks += seen[:, v] * (1 - a) / (1 + a)
+        last = np.where(seen[:, v], times[v], last)
+    return looks
 
 
 def passes_of(seen: np.ndarray, times: Optional[np.ndarray] = None, gap_s: float = PASS_SECONDS) -> np.ndarray:
@@ -110,16 +146,18 @@ def sparse_coverage(data, max_points: int = 20000, seed: int = 0) -> Coverage:
         seen[:, k] = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
     counts = seen.sum(1)
     keep = counts > 0
-    return _summarise(counts[keep], passes_of(seen[keep], times), "sparse")
+    return _summarise(counts[keep], passes_of(seen[keep], times), "sparse", looks_of(seen[keep], times))
 
 
 @torch.no_grad()
 def surface_coverage(trainer, per_view: int = 400, seed: int = 0, source_ids: Optional[list[int]] = None,
-                     max_side: int = COVERAGE_SIDE) -> Coverage:
+                     max_side: int = COVERAGE_SIDE, light_seconds: float = LIGHT_SECONDS) -> Coverage:
     """Coverage of the model's surface by the training views: about ``per_view`` pixels of each
     of ``source_ids`` (default: every training view) where the model is opaque (alpha above
     0.5), back-projected at its depth and counted in every training view whose own depth there
-    agrees (:data:`DEPTH_TOL`). Depth is rendered at most ``max_side`` pixels on the long side."""
+    agrees (:data:`DEPTH_TOL`). Depth is rendered at most ``max_side`` pixels on the long side;
+    ``light_seconds``: the light's decorrelation time the looks are counted with (the survey's,
+    where measured)."""
     data = trainer.data
     ids, times = _time_order(data, list(data.train_ids))
     sources = set(ids if source_ids is None else source_ids)
@@ -143,7 +181,7 @@ def surface_coverage(trainer, per_view: int = 400, seed: int = 0, source_ids: Op
             pc = np.stack([(u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z], 1)
             points.append((pc - cam.t) @ cam.R)    # camera -> world
     if not points:
-        return _summarise(np.zeros(0, np.int64), np.zeros(0, np.int64), "surface")
+        return _summarise(np.zeros(0, np.int64), np.zeros(0, np.int64), "surface", np.zeros(0))
     pts = np.concatenate(points)
     seen = np.zeros((len(pts), len(ids)), bool)
     for k, (cam, dm) in enumerate(zip(cams, depth)):
@@ -155,4 +193,4 @@ def surface_coverage(trainer, per_view: int = 400, seed: int = 0, source_ids: Op
         seen[:, k] = inside & (np.abs(there - z) <= DEPTH_TOL * np.maximum(z, 1e-6))
     counts = seen.sum(1)
     keep = counts > 0
-    return _summarise(counts[keep], passes_of(seen[keep], times), "surface")
+    return _summarise(counts[keep], passes_of(seen[keep], times), "surface", looks_of(seen[keep], times, light_seconds))

@@ -239,8 +239,8 @@ def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, 
     cov = sparse_coverage(data)
     if cov.points:
         plan.views_per_point, plan.passes_per_point = cov.median_views, cov.median_passes
-        if caustics and cov.median_passes < MIN_PASSES:
-            plan.notes.append(coverage_advice(cov.median_views, cov.median_passes))
+        if caustics and cov.median_looks < MIN_PASSES:
+            plan.notes.append(coverage_advice(cov.median_views, cov.median_looks))
     plan.seconds_per_1000, plan.path = time_steps(trainer, warmup_steps)
     return plan
 
@@ -253,8 +253,8 @@ MIN_PASSES = 6
 
 def coverage_advice(views: float, passes: float) -> str:
     """What to tell a user whose survey sees each point too few times for caustic removal."""
-    return (f"caustic removal needs each seabed point in about {MIN_PASSES} or more independent views "
-            f"(photos, or video passes a second or more apart); this survey has a median of {passes:g} "
+    return (f"caustic removal needs each seabed point in about {MIN_PASSES} or more independent looks at the "
+            f"light (photos, or video frames whose light had time to change); this survey has a median of {passes:.1f} "
             f"({views:g} views). Photograph with more overlap (80 % forward, 60 % side) or keep more frames "
             "of a video; expect caustics to stay partly in the model")
 
