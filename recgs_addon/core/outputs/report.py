@@ -25,10 +25,13 @@ def _passes_row(p: dict) -> str:
     """What the pass estimator cost and drew on, in one table cell."""
     if p.get("share") is None:
         return f"none made: moving light of {p.get('light_std')} log units measured between frames ({p.get('seconds')} s)"
+    looks = f", {p['median_looks']:g} independent looks" if p.get("median_looks") is not None else ""
+    how = {"field": "each frame's light modelled, then the colour", "floor": "the floor of the light"}
     return (f"{p.get('seconds')} s (geometry, gathers and references, once); {100 * p.get('share', 0):.0f} % of "
-            f"the training pixels from the passes (median {p.get('median_passes'):g} passes a pixel), the rest "
-            f"low-pass; moving light {p.get('light_std')} log units, frames under {p.get('pass_seconds')} s "
-            "apart one pass")
+            f"the training pixels from the passes (median {p.get('median_passes'):g} passes a pixel{looks}; "
+            f"{how.get(p.get('statistic'), 'the floor of the light')}), the rest low-pass; moving light "
+            f"{p.get('light_std')} log units, frames under {p.get('pass_seconds')} s apart one pass"
+            + (f", its decorrelation time {p['light_seconds']:g} s" if p.get("light_seconds") else ""))
 
 
 def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -> Path:
@@ -102,8 +105,12 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
                   f"in {cov['median_passes']:g} passes (frames less than a second apart count as one pass: they saw "
                   f"nearly the same light). {100 * cov['share_below']['5']:.0f} % of the points are seen by fewer "
                   "than 5 views.", ""]
-        if cov["median_passes"] < MIN_PASSES and cfg.get("mode") in CAUSTIC_MODES:
-            lines += [coverage_advice(cov["median_views"], cov["median_passes"]) + ".", ""]
+        looks = cov.get("median_looks")
+        if looks:
+            lines += [f"Counted as independent looks at the light (frames whose light had time to change count "
+                      f"whole, frames that saw nearly the same light share one): a median of {looks:.1f} a point.", ""]
+        if (looks or cov["median_passes"]) < MIN_PASSES and cfg.get("mode") in CAUSTIC_MODES:
+            lines += [coverage_advice(cov["median_views"], looks or cov["median_passes"]) + ".", ""]
         lines += ["![coverage](report/coverage.png)"]
     sup = metrics.get("view_support")
     if sup:
@@ -147,7 +154,7 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
             image = data.view(i, 1)[1].cpu().numpy()
             free = method.decaustic_image(i).cpu().numpy()
             gt = data.gt_view(i)
-            ims, labels = [image, free], ["captured", "caustic-free"]
+            ims, labels = [image, modelled_light(image, free), free], ["captured", "light taken out", "caustic-free"]
             if gt is not None:
                 ims.append(gt.cpu().numpy())
                 labels.append("ground truth")
@@ -162,10 +169,34 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
                 lbl = ["caustic estimate C", "true I - ground truth"]
             plot.labelled_strip(rd / f"caustic_{name}.png", strip, lbl)
             lines += [f"![{name}](report/triptych_{name}.png)", "", f"![{name} caustics](report/caustic_{name}.png)", ""]
+            lines += _supplied(metrics.get("passes") or {}, data.scene.cameras[i].name)
     path = out / "report.md"
     with atomic_path(path, "report") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     return path
+
+
+def modelled_light(photo: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """The light a run took out of a photo, as an image: the grey ratio of the photo to its
+    caustic-free image in linear light, on a log scale (mid-grey: none; white: twice the light
+    or more; black: half or less)."""
+    def linear(x):
+        x = np.clip(x, 0, 1)
+        return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).mean(-1)
+
+    ratio = (linear(photo) + 0.01) / (linear(free) + 0.01)
+    return np.repeat(plot.signed_map(np.log2(ratio)[..., None], 1.0), 3, -1)
+
+
+def _supplied(p: dict, name: str) -> list[str]:
+    """Which estimate supplied a training view's caustic-free pixels."""
+    share = (p.get("share_per_frame") or {}).get(name)
+    if share is None:
+        return []
+    how = {"field": "each frame's light modelled, then the colour", "floor": "the floor of the light"}
+    return [f"{100 * share:.0f} % of this view's pixels from the passes that saw them "
+            f"({how.get(p.get('statistic'), p.get('statistic') or 'the floor of the light')}), "
+            f"{100 * (1 - share):.0f} % from its own low-pass estimate.", ""]
 
 
 def _light_section(light: Optional[dict], mode: Optional[str], lamp: dict) -> list[str]:
