@@ -69,7 +69,8 @@ SURVEYS = {
 DIVE = ["--views", "144", "--width", "320", "--height", "240", "--lines", "6", "--overlap", "0.85",
         "--sidelap", "0.7", "--caustic-motion", "smooth", "--caustic-dt", "0.33"]
 SURVEYS.update({
-    "dive-networks": DIVE + ["--seed", "32", "--caustic-pattern", "voronoi", "--caustic-strength", "0.9"],
+    "dive-networks": DIVE + ["--seed", "32", "--caustic-pattern", "voronoi", "--caustic-strength", "0.9",
+                             "--save-depth"],
     "dive-mild": DIVE + ["--seed", "31", "--caustic-pattern", "voronoi", "--caustic-strength", "0.35"],
     "dive-broad": DIVE + ["--seed", "33", "--caustic-pattern", "waves", "--caustic-scale", "12",
                           "--caustic-blur", "0.3", "--caustic-strength", "1.0"],
@@ -102,6 +103,15 @@ SURVEYS.update({
     "level-reef-networks": REEF + ["--water", "coastal", "--seed", "63", "--caustic-pattern", "voronoi",
                                    "--caustic-strength", "0.9"],
 })
+# Lawnmower rows that cross each seabed point only two or three times, as most divers and
+# robots shoot: 64 frames in six rows with 65 % side overlap (each point in about six frames of
+# each of two or three rows), frames a third of a second apart, sharp light networks drifting
+# as a shallow reef's do; the generator's depth saved for the estimators' bounds.
+ROWS = ["--views", "64", "--width", "320", "--height", "240", "--lines", "6", "--overlap", "0.85",
+        "--sidelap", "0.65", "--caustic-motion", "smooth", "--caustic-dt", "0.33", "--save-depth"]
+SURVEYS.update({
+    "rows-networks": ROWS + ["--seed", "71", "--caustic-pattern", "voronoi", "--caustic-strength", "0.9"],
+})
 # A dive survey in deep water lit by a lamp on the camera (tools/survey_lamp.py): no sunlight
 # caustics; clean/ holds the seabed under even light.
 SURVEYS.update({
@@ -119,6 +129,8 @@ METHODS = {
     "recgs-trim": ["--mode", "recgs", "--robust-k", "1.5"],
     "recgs-consensus": ["--mode", "recgs", "--estimator", "consensus"],
     "recgs-passes": ["--mode", "recgs", "--estimator", "passes"],
+    "recgs-floor": ["--mode", "recgs", "--pass-statistic", "floor"],
+    "recgs-min1": ["--mode", "recgs", "--pass-min", "1"],
     "recgs-lowpass": ["--mode", "recgs", "--estimator", "lowpass", "--fit-loss", "l1"],
     "recgs-likelihood": ["--mode", "recgs", "--estimator", "likelihood"],
     "recgs-lf": ["--mode", "recgs", "--estimator", "lightfield", "--fit-loss", "l1"],
@@ -132,7 +144,7 @@ METHODS = {
 # Surveys without caustics made from another survey's ground truth: the same frames and cameras
 # with the clean images as the photos (no rendering needed; "no harm" is measured on the very
 # seabed the caustic runs see).
-CLEAN_OF = {"dive-none": "dive-networks", "sample-none": "sample"}
+CLEAN_OF = {"dive-none": "dive-networks", "sample-none": "sample", "rows-none": "rows-networks"}
 
 
 def survey_dir(out: Path, name: str) -> Path:

@@ -1,7 +1,7 @@
 """How good are the pass estimator's caustic-free targets, before any training?
 
     .venv/bin/python benchmarks/bench_targets.py SURVEY [--model MODEL.ply] [--depth points|true|model]
-        [--set FIELD=VALUE ...]
+        [--statistics floor,field] [--bound] [--set FIELD=VALUE ...]
 
 For a generated survey with ground truth (``clean/``), builds every training frame's target as
 the pass estimator does (core/caustics/passes.py) and prints, against ground truth: the photos,
@@ -10,8 +10,12 @@ metrics; where too few passes saw a pixel the photo stands in, or RecGS's low-pa
 model is given), and the depth error of the geometry (where the survey has the generator's true
 depth, ``tools/make_survey.py --save-depth``). ``--depth``: ``points`` (the survey's sparse
 points refined by the plane sweep: what a run uses), ``true`` (the generator's depth: the
-estimator's ceiling) or ``model`` (the given model's own rendered depth, unrefined). Prints the
-time of each part.
+estimator's ceiling) or ``model`` (the given model's own rendered depth, unrefined). Each of
+``--statistics`` is measured (``floor``: the floor of the light; ``field``: each frame's light
+modelled, then the colour), with the independent looks a pixel had. ``--bound`` (with the true
+depth) adds the statistics' ceilings: the field's light modelled against the true colour
+instead of the floor's, and the floor taken over the frames whose *true* light is lowest.
+Prints the time of each part.
 """
 from __future__ import annotations
 
@@ -58,11 +62,15 @@ def main(argv=None) -> int:
     ap.add_argument("--model", type=Path, default=None, help="a trained model's PLY (low-pass fallback, --depth model)")
     ap.add_argument("--depth", choices=("points", "true", "model"), default="points")
     ap.add_argument("--holdout-every", type=int, default=8)
+    ap.add_argument("--statistics", default="floor,field", help="the pass estimator's statistics to compare")
+    ap.add_argument("--bound", action="store_true", help="the statistics' ceilings (needs --depth true)")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="a PassSettings field for this measurement (repeatable), e.g. --set per_pass=8")
     args = ap.parse_args(argv)
     if args.depth == "model" and args.model is None:
         ap.error("--depth model needs --model")
+    if args.bound and args.depth != "true":
+        ap.error("--bound needs --depth true")
 
     scene = load_scene(args.survey)
     data = TrainData(scene, 1, args.holdout_every, gt_scene=load_scene(args.survey, image_dir=args.survey / "clean"),
@@ -108,7 +116,7 @@ def main(argv=None) -> int:
               f"{100 * np.percentile(err, 90):.2f} % ({t_geo:.1f} s)")
     t = time.perf_counter()
     light = passes.light_statistics(views, overlap)
-    settings = passes.PassSettings(**({"pass_seconds": light["correlation_s"]} if light["correlation_s"] else {}))
+    settings = passes.settings_for(light)
     for item in args.set:
         field, _, value = item.partition("=")
         if not hasattr(settings, field):
@@ -116,17 +124,54 @@ def main(argv=None) -> int:
         kind = type(getattr(settings, field))
         settings = dataclasses.replace(settings, **{field: kind(value)})
     t_light = time.perf_counter() - t
-    print(f"  light: std {light['light_std']} log units, correlation time {light['correlation_s']} s "
-          f"(shared variance by lag {light['shared']}; {t_light:.1f} s)")
-    t = time.perf_counter()
-    targets, info = passes.pass_targets(views, settings, fallback, overlap=overlap)
-    t_est = time.perf_counter() - t
+    print(f"  light: std {light['light_std']} log units, correlation time {light['correlation_s']} s, "
+          f"decorrelation time {light.get('light_seconds')} s (shared variance by lag {light['shared']}; {t_light:.1f} s)")
     if args.set:
         print(f"  settings: {', '.join(args.set)}")
-    p = np.mean([psnr(x.clamp(0, 1), gts[i]) for x, i in zip(targets, ids)])
-    print(f"  targets {p:.2f} dB (median passes {np.median(info['passes']):g}, share from the passes "
-          f"{np.mean(info['share']):.2f}; {t_est:.1f} s)")
+    for stat in args.statistics.split(","):
+        t = time.perf_counter()
+        targets, info = passes.pass_targets(views, dataclasses.replace(settings, statistic=stat), fallback,
+                                            overlap=overlap)
+        t_est = time.perf_counter() - t
+        p = np.mean([psnr(x.clamp(0, 1), gts[i]) for x, i in zip(targets, ids)])
+        print(f"  targets, {stat}: {p:.2f} dB (median passes {np.median(info['passes']):g}, independent looks "
+              f"{np.median(info['looks']):.1f}, share from the passes {np.mean(info['share']):.2f}; {t_est:.1f} s)")
+    if args.bound:
+        bound(views, settings, overlap, ids, gts)
     return 0
+
+
+def bound(views, settings, overlap, ids, gts) -> None:
+    """The statistics' ceilings on this geometry: the field's light modelled against the true
+    colour (the clean frames) instead of the floor's, and the floor taken over the frames whose
+    *true* light is lowest instead of their blurred grey level."""
+    from recgs_addon.core.caustics.consensus import apply_count_gain, gain_by_count
+    from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
+
+    truth = [srgb_to_linear(gts[i].clamp(0, 1)) for i in ids]
+    owns = [srgb_to_linear(v.photo.clamp(0, 1)) for v in views]
+    true_light = [torch.log((o.mean(-1) + 0.01) / (g.mean(-1) + 0.01)) for o, g in zip(owns, truth)]
+    floors, chosen, counts = [], [], []
+    for k, v in enumerate(views):
+        groups = passes.choose_passes(k, views, overlap, settings)
+        samples, valid, _, _ = passes.gather(k, views, groups, settings.depth_tol)
+        sigma = settings.floor_sigma * v.photo.shape[1] / 320.0
+        floors.append(passes.floor_statistic(samples, valid, settings.floor_tol, sigma, settings.own_weight))
+        light = torch.stack([true_light[j] if j == k else
+                             geometry.warp(v, views[j], settings.depth_tol, true_light[j].unsqueeze(-1))[0][..., 0]
+                             for g in groups for j in g])
+        key = torch.where(valid, light, torch.full_like(light, float("inf")))
+        m = (valid & (key <= key.amin(0, keepdim=True) + np.log1p(settings.floor_tol))).float()
+        chosen.append(torch.einsum("fhwc,fhw->hwc", samples, m) / m.sum(0).clamp_min(1e-6).unsqueeze(-1))
+        counts.append(valid.sum(0))
+    modelled = passes.frame_lights(owns, truth, [v.covered for v in views], settings)
+    field = [passes.field_colour(o, f, L, v.covered, settings) for o, f, L, v in zip(owns, floors, modelled, views)]
+    for name, stats in (("field, light modelled against the true colour", field),
+                        ("floor, frames chosen by their true light", chosen)):
+        gains = gain_by_count(owns, stats, counts)
+        out = [linear_to_srgb(apply_count_gain(x, c, passes._for_counts(gains, c)).clamp_min(0)) for x, c in zip(stats, counts)]
+        out = [torch.where(v.covered.unsqueeze(-1), o, v.photo) for o, v in zip(out, views)]
+        print(f"  bound, {name}: {np.mean([psnr(o.clamp(0, 1), gts[i]) for o, i in zip(out, ids)]):.2f} dB")
 
 
 if __name__ == "__main__":

@@ -98,9 +98,10 @@ def test_choose_passes_groups_by_time_and_respects_sources_and_budget():
     assert all(j in only for g in groups[1:] for j in g) and groups[0] == [3]
 
 
-def test_targets_take_the_light_out_and_keep_the_mean_light():
+@pytest.mark.parametrize("statistic", ["field", "floor"])
+def test_targets_take_the_light_out_and_keep_the_mean_light(statistic):
     views, gts = survey()
-    targets, info = P.pass_targets(views, P.PassSettings(pass_seconds=0.5))
+    targets, info = P.pass_targets(views, P.PassSettings(pass_seconds=0.5, statistic=statistic))
     mid = [k for k in range(len(views)) if info["share"][k] > 0.5]
     assert len(mid) > len(views) // 2
     photos = np.mean([psnr(views[k].photo, gts[k]) for k in mid])
@@ -259,3 +260,52 @@ def test_frames_are_evened_by_the_light_fixed_to_the_camera_before_they_are_comp
         assert torch.allclose(v.photo, even[k], atol=2e-3)            # evened: the seabed alone
         assert torch.allclose(_relit(v.photo, gains, k), lit[k], atol=2e-3)
     assert Estimates._even_the_light(SimpleNamespace(trainer=SimpleNamespace(lamp=None, light=None)), views, []) is None
+
+
+def _disc(radius: float = 12.0, level: float = 0.7) -> torch.Tensor:
+    """(H, W) log light: a bright disc over the floor (0)."""
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    return level * (((u - W / 2) ** 2 + (v - H / 2) ** 2) < radius ** 2).float()
+
+
+def test_a_frames_light_is_modelled_through_the_colours_texture_error():
+    """The light of a frame against a colour estimate that is wrong by fine texture: the light
+    comes back (the disc, its contrast within what total variation takes off its rim) and the
+    texture error does not."""
+    rng = torch.Generator().manual_seed(0)
+    colour = 0.05 + 0.3 * torch.rand(H, W, 1, generator=rng).expand(H, W, 3)
+    true = _disc()
+    photo = colour * torch.exp(true).unsqueeze(-1)
+    error = 0.1 * torch.randn(H, W, generator=rng)                 # the estimate's texture error (log units)
+    wrong = colour * torch.exp(error).unsqueeze(-1)
+    light = P.frame_lights([photo], [wrong], [torch.ones(H, W, dtype=torch.bool)], P.PassSettings())[0]
+    assert (light - true).abs().mean() < 0.35 * error.abs().mean(), float((light - true).abs().mean())
+    inside = true > 0
+    assert abs(float(light[inside].mean()) - 0.7) < 0.08
+
+
+def test_the_colour_is_the_photo_under_its_light_and_the_floor_under_a_bright_line():
+    rng = torch.Generator().manual_seed(1)
+    colour = 0.05 + 0.5 * torch.rand(H, W, 3, generator=rng)
+    floor = 0.9 * colour                                      # what the passes' floor gave
+    light = _disc(16.0, 3.0)                                  # a line 20 times the floor's light
+    own = colour * torch.exp(light).unsqueeze(-1)
+    got = P.field_colour(own, floor, light, torch.ones(H, W, dtype=torch.bool), P.PassSettings())
+    dim, bright = light == 0, light > 0
+    assert torch.allclose(got[dim], colour[dim], rtol=0.01)   # the photo, where its light is known
+    assert torch.allclose(got[bright], floor[bright], rtol=0.01)   # the floor, under the line
+
+
+def test_frames_that_saw_the_same_light_count_as_one_look():
+    valid = torch.ones(3, 2, 2, dtype=torch.bool)
+    assert torch.allclose(P.effective_looks(valid, [0.0, 0.0, 100.0], 1.0), torch.full((2, 2), 2.0))
+    assert torch.allclose(P.effective_looks(valid, [0.0, 10.0, 20.0], 1.0), torch.full((2, 2), 3.0), atol=1e-3)
+    assert torch.allclose(P.effective_looks(valid, [0.0, None, 0.0], 1.0), torch.full((2, 2), 3.0))   # no times
+    valid[1, 0, 0] = False                                    # a pixel the same-instant frame missed
+    assert P.effective_looks(valid, [0.0, 0.0, 100.0], 1.0)[0, 0] == pytest.approx(2.0)
+
+
+def test_the_lights_decorrelation_time_is_fitted_from_its_shared_variance():
+    shared = {lag: math.exp(-lag / 0.8) for lag in (0.33, 0.66, 0.99)}
+    assert P.decorrelation_time(shared, 0.33) == pytest.approx(0.8, abs=1e-3)
+    assert P.decorrelation_time({0.33: -0.1}, 0.33) == pytest.approx(0.033)   # gone within a frame

@@ -171,6 +171,7 @@ def test_second_job_on_a_busy_folder_refuses_and_a_killed_job_frees_it(tmp_path)
     (["--mode", "recgs", "--recurrence-tol", "nan"], "recurrence tolerance must be a number >= 0, got nan"),
     (["--mode", "recgs", "--estimator", "lightfield", "--lf-lambda", "nan"],
      "light-field TV weight and dead band must be >= 0, got nan, "),
+    (["--mode", "recgs", "--pass-min", "0"], "the passes a pixel needs must be at least 1, got 0"),
 ])
 def test_train_refuses_settings_no_run_can_use(tmp_path, capsys, argv, msg):
     """Regression (outside trial): these were accepted: a NaN time limit or tolerance ran on

@@ -138,6 +138,7 @@ def run_train(args) -> int:
                            recurrence_tol=args.recurrence_tol, robust_k=args.robust_k,
                            estimator=args.estimator, caustics=args.caustics, consensus_stat=args.consensus_stat,
                            lf_lambda=args.lf_lambda, lf_tau=args.lf_tau, fit_loss=args.fit_loss,
+                           pass_statistic=args.pass_statistic, pass_min=args.pass_min,
                            gain_restore=None if args.gain_restore is None else args.gain_restore == "on")
             ccfg = CausticConfig(**{k: v for k, v in caustic.items() if v is not None})
         init = read_gaussian_ply(args.init_ply) if args.init_ply and not args.resume else None
@@ -273,7 +274,7 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
 def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoint, plan, t_command) -> int:
     """The end of a run: the last checkpoint, the output images, metrics and report."""
     from ..core.outputs.diagnostics import support_summary, view_support
-    from ..core.train.coverage import COVERAGE_VIEWS, spread, surface_coverage
+    from ..core.train.coverage import COVERAGE_VIEWS, LIGHT_SECONDS, spread, surface_coverage
     from ..core.outputs.exports import write_outputs
     from ..core.outputs.report import write_run_report
 
@@ -288,7 +289,9 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
         return 0
     final = trainer.evaluate()
     support = support_summary(view_support(trainer))
-    coverage = surface_coverage(trainer, source_ids=spread(trainer.data.train_ids, COVERAGE_VIEWS)).summary()
+    light_s = (getattr(method, "pass_info", None) or {}).get("light_seconds") or LIGHT_SECONDS   # measured, where it was
+    coverage = surface_coverage(trainer, source_ids=spread(trainer.data.train_ids, COVERAGE_VIEWS),
+                                light_seconds=light_s).summary()
     metrics = {
         "status": "done", "reason": reason, "iterations": trainer.step,
         "seconds": round(trainer.elapsed, 2), "job_seconds": round(time.perf_counter() - t_command, 2),

@@ -26,6 +26,8 @@ MODES = tuple(MODE_INFO)
 CAUSTIC_MODES = ("recgs", "filter2d", "joint")
 #: How RecGS estimates each view's caustics (recgs.py).
 ESTIMATORS = ("auto", "lowpass", "passes", "consensus", "lightfield", "likelihood")
+#: The pass estimator's statistics (passes.py): each frame's light modelled, or the floor's mean.
+PASS_STATISTICS = ("field", "floor")
 #: Whether RecGS looks for caustics before removing any (light.py): ``auto`` removes them only
 #: where the survey shows light that moves over the seabed; ``on`` runs the loop regardless.
 FIND_CAUSTICS = ("auto", "on")
@@ -54,6 +56,8 @@ class CausticConfig:
                                          # | passes: the floor of the light over the passes that saw each point (passes.py)
                                          # | consensus: I - multi-view consensus
                                          # | lightfield: low band + one-sided coherent light over a floor (lightfield.py)
+    pass_statistic: str = "field"        # passes: field = each frame's light modelled, then the colour | floor
+    pass_min: int = 1                    # passes: independent passes a pixel needs (fewer: the low-pass target)
     lf_lambda: float = 0.05              # lightfield: TV weight (log light per pixel of edge)
     lf_tau: float = 0.02                 # lightfield: dead band (log light) below which light is not taken out
     light_sigma: float = 1.0             # likelihood: blur (pixels at 320 px wide, scaled with the image) of a view's light
@@ -65,7 +69,7 @@ class CausticConfig:
 
     #: Settings added since a release, with the value that reproduces runs saved before them.
     _BEFORE = {"caustic_dc": True, "robust_k": 0.0, "gain_restore": False, "estimator": "lowpass", "fit_loss": "l1",
-               "caustics": "on"}
+               "caustics": "on", "pass_statistic": "floor", "pass_min": 3}
 
     @classmethod
     def from_dict(cls, d: dict) -> "CausticConfig":
@@ -91,6 +95,10 @@ class CausticConfig:
             raise RecGSError("the consensus estimator makes additive caustic maps (caustic model additive)")
         if not (0 <= self.lf_lambda < math.inf and 0 <= self.lf_tau < math.inf):   # NaN fails this too
             raise RecGSError(f"light-field TV weight and dead band must be >= 0, got {self.lf_lambda}, {self.lf_tau}")
+        if self.pass_statistic not in PASS_STATISTICS:
+            raise RecGSError(f"unknown pass statistic {self.pass_statistic!r} (choose from {', '.join(PASS_STATISTICS)})")
+        if self.pass_min < 1:
+            raise RecGSError(f"the passes a pixel needs must be at least 1, got {self.pass_min}")
         if self.fit_loss not in ("l1", "l2"):
             raise RecGSError(f"unknown fit loss {self.fit_loss!r} (l1 or l2)")
         if self.robust_k < 0:

@@ -227,8 +227,7 @@ class Estimates:
                               **{k: v for k, v in light.items() if k != "correlation_s"}}
             return {"estimates": None, "light": light}
         geometry.refine_geometry(views, overlap, brought)
-        settings = passes.PassSettings(**({"pass_seconds": light["correlation_s"]}
-                                          if light.get("correlation_s") is not None else {}))
+        settings = passes.settings_for(light, statistic=self.ccfg.pass_statistic, min_passes=self.ccfg.pass_min)
         # with the water modelled, the frames' colours are compared at each frame's own range
         est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train, water=water)
         est = [_relit(e, lit, k) for e, k in zip(est, train)]
@@ -240,6 +239,7 @@ class Estimates:
             tr.best_by = "psnr"   # the references do not follow the model
         seconds = round(time.perf_counter() - t, 2)
         self.pass_info = {"median_passes": float(np.median(info["passes"])), "share": round(float(np.mean(info["share"])), 4),
+                          "median_looks": round(float(np.median(info["looks"])), 2), "statistic": settings.statistic,
                           "pass_seconds": settings.pass_seconds, "seconds": seconds,
                           **{k: v for k, v in light.items() if k != "correlation_s"},
                           "share_per_frame": {data.scene.cameras[i].name: round(float(x), 3)

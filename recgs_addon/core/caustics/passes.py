@@ -31,12 +31,28 @@ each training frame ``i``:
    floor's over all pixels seen by ``n`` frames (``consensus.gain_by_count``, as the consensus
    estimator's lower envelopes are). What varies
    between passes at a point is light, whatever its frequency, so this replaces the whole band.
-5. **Too few passes.** Where fewer than ``min_passes`` independent passes saw a pixel, the
-   frame keeps its per-frame estimate (``fallback``, RecGS's low-pass target), blended in over
-   one pass.
+5. **The light, then the colour** (``statistic="field"``, the default). The floor is a first
+   colour; each frame's *light* is then modelled against it, in the frame's own image: the
+   grey log-ratio of its photo to the floor colour, denoised by total variation (the light at
+   one instant is one continuous field of long lines and dark cells; what the floor got
+   wrong, resampled texture and noise, is flattened) and kept where it is above the floor
+   (:func:`frame_lights`). The colour is then the frame's own photo with its modelled light
+   taken off (it needs no resampling, so it keeps the detail the warped frames blur), the
+   floor where the photo was under a bright line whose level is least certain
+   (:func:`field_colour`); calibrated per number of frames as the floor is.
+   ``statistic="floor"`` stops at step 4.
+6. **Too few passes.** Where fewer than ``min_passes`` independent passes saw a pixel (by
+   default: none, the surface unknown there), the frame keeps its per-frame estimate
+   (``fallback``, RecGS's low-pass target), blended in over one pass.
+
+**Independent looks.** Frames close in time saw nearly the same light. With the light's
+correlation ``exp(-dt / light_seconds)`` between frames ``dt`` apart (``light_seconds``
+measured by :func:`light_statistics`), the frames that saw a pixel are worth
+:func:`effective_looks` independent samples of the light; the run reports their median, and
+the coverage of a survey is counted the same way (``train/coverage.py``).
 
 :func:`pass_targets` returns the targets and, per frame, the share of pixels that came from
-the passes.
+the passes and the looks they had.
 
 Shapes: photos and targets (H, W, 3) float32 sRGB in [0, 1]; frames are ``geometry.PassView``.
 """
@@ -50,12 +66,16 @@ import numpy as np
 import torch
 
 from ..model.colour import linear_to_srgb, srgb_to_linear
-from ..train.coverage import DEPTH_TOL, PASS_SECONDS
+from ..train.coverage import DEPTH_TOL, LIGHT_SECONDS, PASS_SECONDS
 from .consensus import apply_count_gain, backproject, gain_by_count
 from .geometry import PassView, depth_map, overlap_matrix, smooth, warp
+from .tv import tv_denoise
 
 #: A frame that sees less than this share of another's covered pixels is not its neighbour.
 MIN_OVERLAP = 0.05
+#: Iterations of a frame's light's total-variation denoising (20, 40 and 100 gave targets within
+#: 0.05 dB of each other on a lawnmower survey, benchmarks/RESULTS.md#caustics-light-then-colour).
+FIELD_ITERS = 30
 #: Frames further apart in time than this saw independent light (waves that focus sunlight
 #: pass in a few seconds); the light's correlation time is looked for below it.
 MAX_LAG_S = 4.0
@@ -66,11 +86,23 @@ class PassSettings:
     pass_seconds: float = PASS_SECONDS   # frames closer in time than this saw the same light
     per_pass: int = 4                    # frames kept of each pass (the best-overlapping)
     max_frames: int = 24                 # frames gathered for one frame, at most
-    min_passes: int = 3                  # fewer independent passes: the frame's own estimate
+    min_passes: int = 1                  # fewer independent passes: the frame's own estimate
     floor_tol: float = 0.2               # the floor: passes within this (relative) of the lowest
     floor_sigma: float = 3.0             # ... compared blurred by this many pixels (at 320 px wide)
     own_weight: float = 100.0            # the frame's own pixel, where it is on the floor, weighs this
     depth_tol: float = DEPTH_TOL
+    light_seconds: float = LIGHT_SECONDS  # the light's decorrelation time (s): how independent two looks are
+    statistic: str = "field"             # "field": each frame's light modelled, then the colour; "floor": the floor's mean
+    field_lambda: float = 0.1            # field: TV weight of a frame's light (log units per pixel of edge)
+    field_trust: float = 1.0             # field: the frame's own light (log units over the floor) at which its
+    field_kappa: float = 0.3             # ... photo and the floor weigh alike; its weight falls as exp(-light / kappa)
+
+
+def settings_for(light: dict, **fields) -> PassSettings:
+    """The settings for a survey whose light :func:`light_statistics` measured: frames closer
+    than its correlation time are one pass, looks counted with its decorrelation time."""
+    measured = {"pass_seconds": light.get("correlation_s"), "light_seconds": light.get("light_seconds")}
+    return PassSettings(**{k: v for k, v in measured.items() if v is not None}, **fields)
 
 
 def _linear(image: torch.Tensor) -> torch.Tensor:
@@ -186,20 +218,25 @@ def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] =
     ids = list(range(len(views))) if ids is None else list(ids)
     overlap = overlap_matrix(views, s.depth_tol) if overlap is None else overlap
     stats, counts, passes, owns, veils = [], [], [], [], []
+    groups = {i: choose_passes(i, views, overlap, s, sources) for i in ids}
+    looks = []
     for i in ids:
-        groups = choose_passes(i, views, overlap, s, sources)
-        samples, valid, npass, veil = gather(i, views, groups, s.depth_tol, water)
+        samples, valid, npass, veil = gather(i, views, groups[i], s.depth_tol, water)
+        looks.append(effective_looks(valid, [views[j].time for g in groups[i] for j in g], s.light_seconds))
         veils.append(veil)
         sigma = s.floor_sigma * views[i].photo.shape[1] / 320.0
         stats.append(floor_statistic(samples, valid, s.floor_tol, sigma, s.own_weight))
         counts.append(valid.sum(0))
         passes.append(npass)
         owns.append(samples[0])
+    if s.statistic == "field":   # the light, then the colour
+        lights = frame_lights(owns, stats, [views[i].covered for i in ids], s)
+        stats = [field_colour(o, f, L, views[i].covered, s) for o, f, L, i in zip(owns, stats, lights, ids)]
     # the floor is darker than the mean light by a factor that depends on how many frames it
     # was taken over: calibrated on the photos themselves (they hold the mean light)
     if gains is None:
         gains = gain_by_count(owns, stats, counts)
-    estimates, weights, info = [], [], {"passes": [], "share": [], "gains": gains}
+    estimates, weights, info = [], [], {"passes": [], "looks": [], "share": [], "gains": gains}
     for k, i in enumerate(ids):
         lin = apply_count_gain(stats[k], counts[k], _for_counts(gains, counts[k]))
         if veils[k] is not None:
@@ -209,6 +246,7 @@ def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] =
         w = (passes[k].to(estimates[-1].dtype) - (s.min_passes - 1)).clamp(0, 1) * cov
         weights.append(w)
         info["passes"].append(float(passes[k][cov].float().median()) if cov.any() else 0.0)
+        info["looks"].append(float(looks[k][cov].median()) if cov.any() else 0.0)
         info["share"].append(float(w.mean()))
     return estimates, weights, info
 
@@ -253,6 +291,51 @@ def floor_statistic(samples: torch.Tensor, valid: torch.Tensor, tol: float = 0.1
     m = (valid & (key <= (1 + tol) * lo)).to(samples.dtype)
     m[0] *= own_weight
     return torch.einsum("fhwc,fhw->hwc", samples, m) / m.sum(0).clamp_min(1e-6).unsqueeze(-1)
+
+
+def effective_looks(valid: torch.Tensor, times: Sequence[Optional[float]], light_seconds: float) -> torch.Tensor:
+    """(H, W) the independent looks at the light each pixel got from the frames that saw it
+    (``valid`` (F, H, W), the frames' ``times``), as :func:`.coverage.looks_of` counts them:
+    each frame adds ``(1 - a) / (1 + a)``, ``a`` the light's correlation with the frame before
+    it in time that saw the pixel (1 for a frame of the same instant, 0 for independent light)."""
+    if any(t is None for t in times) or not light_seconds > 0:
+        return valid.sum(0).to(torch.float32)
+    looks = torch.zeros(valid.shape[1:])
+    last = torch.full(valid.shape[1:], -math.inf)
+    for f in sorted(range(len(times)), key=lambda k: times[k]):
+        a = torch.exp(-(times[f] - last) / light_seconds)
+        looks += valid[f] * (1 - a) / (1 + a)
+        last = torch.where(valid[f], torch.full_like(last, times[f]), last)
+    return looks
+
+
+def frame_lights(owns: Sequence[torch.Tensor], colours: Sequence[torch.Tensor], covered: Sequence[torch.Tensor],
+                 s: PassSettings) -> list[torch.Tensor]:
+    """Each frame's light over the floor, in its own image (H, W; log units): the grey log-ratio
+    of its photo ``owns`` (linear) to its colour estimate ``colours`` (linear, under the floor
+    light), denoised by total variation (the light is one continuous field of lines and cells;
+    what the colour estimate got wrong is texture and noise, which it flattens) and kept where
+    it is above the floor (caustics add light over it)."""
+    out = []
+    for photo, colour, cov in zip(owns, colours, covered):
+        r = torch.log(photo.mean(-1).clamp_min(0) + 0.01) - torch.log(colour.mean(-1).clamp_min(0) + 0.01)
+        r = torch.where(cov, r, torch.zeros_like(r))
+        w = cov.to(r.dtype) + 1e-3
+        out.append(tv_denoise(r.unsqueeze(0), s.field_lambda, w.unsqueeze(0), iters=FIELD_ITERS)[0].clamp_min(0))
+    return out
+
+
+def field_colour(own: torch.Tensor, floor: torch.Tensor, light: torch.Tensor, covered: torch.Tensor,
+                 s: PassSettings) -> torch.Tensor:
+    """A frame's colour under the floor light (H, W, 3, linear): its own photo ``own`` with its
+    modelled ``light`` (:func:`frame_lights`) taken off, where that light is known well enough
+    (the floor best: its weight falls as ``exp((field_trust - light) / field_kappa)``), the
+    passes' ``floor`` where the photo was under a bright line (where the light is strongest its
+    level is least certain). The photo needs no resampling, so it keeps the detail that the
+    warped frames blur."""
+    w = torch.exp((s.field_trust - light) / s.field_kappa) * covered
+    w = w.unsqueeze(-1)
+    return (w * own * torch.exp(-light).unsqueeze(-1) + floor) / (w + 1)
 
 
 def light_statistics(views: Sequence[PassView], overlap: np.ndarray, sources: Optional[Sequence[int]] = None,
@@ -325,4 +408,17 @@ def light_statistics(views: Sequence[PassView], overlap: np.ndarray, sources: Op
             break
     else:
         out["correlation_s"] = MAX_LAG_S
+    out["light_seconds"] = decorrelation_time(out["shared"], dt)
     return out
+
+
+def decorrelation_time(shared: dict, dt: float) -> float:
+    """The time ``l`` (s) of ``exp(-lag / l)`` fitted through the light's shared variance by lag
+    (least squares on its logarithm): how fast the light at a seabed point forgets itself. Light
+    that shares nothing even one frame apart gets a tenth of the frame interval ``dt``."""
+    pts = [(float(lag), float(f)) for lag, f in shared.items() if 0 < f < 1]
+    if not pts:
+        return round(dt / 10, 3) if all(f <= 0 for f in shared.values()) and shared else LIGHT_SECONDS
+    lags = np.array([p[0] for p in pts])
+    decay = -np.log(np.array([p[1] for p in pts]))
+    return round(float((lags * lags).sum() / (lags * decay).sum()), 3)

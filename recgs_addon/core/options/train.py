@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..caustics.config import ESTIMATORS, FIND_CAUSTICS, MODE_INFO, CausticConfig
+from ..caustics.config import ESTIMATORS, FIND_CAUSTICS, MODE_INFO, PASS_STATISTICS, CausticConfig
 from ..train.config import LAMP_MODES, MEDIUM_MODES, TrainConfig
 from ..train.strategies import DEFAULT_STRATEGY, STRATEGIES, CloneSplit
 from .scene import EAGER, IMAGE_FOLDER, SCENE_DIR
@@ -153,6 +153,12 @@ TRAIN_OPTIONS = OptionTable([
                           "distribution of caustic gains); consensus: the multi-view consensus of the photos warped "
                           "with the model's depth; lightfield: a per-view light field (low band + coherent light "
                           "over a floor; docs/dev/caustics.md)", choices=ESTIMATORS, group=_CAUSTICS),
+    Option("--pass-statistic", "passes: field (default): each frame's light modelled as one continuous field "
+                               "against the colour the other passes show, then the colour; floor: the mean of the "
+                               "frames that saw each pixel under the floor of its light", choices=PASS_STATISTICS,
+           group=_CAUSTICS),
+    Option("--pass-min", f"passes: independent passes a pixel needs for its target to come from them (fewer: "
+                         f"the low-pass target; default {CausticConfig.pass_min})", type=int, group=_CAUSTICS),
     Option("--lf-lambda", f"lightfield: TV weight (default {CausticConfig.lf_lambda})", type=float, group=_CAUSTICS),
     Option("--lf-tau", f"lightfield: dead band in log light (default {CausticConfig.lf_tau})", type=float,
            group=_CAUSTICS),

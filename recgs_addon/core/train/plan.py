@@ -147,6 +147,7 @@ class RunPlan:
     budget_capped_from: Optional[int] = None   # the budget memory allowed, if lower than asked
     views_per_point: Optional[float] = None    # median training views per sparse point (coverage.py)
     passes_per_point: Optional[float] = None   # ... and independent passes (frames close in time: one)
+    looks_per_point: Optional[float] = None    # ... and independent looks at the light (coverage.looks_of)
     notes: list = field(default_factory=list)
     start_bytes: Optional[int] = None   # the estimate with the model at its size now
 
@@ -171,7 +172,8 @@ class RunPlan:
         out.append(mem)
         if self.views_per_point is not None:
             out.append(f"coverage: each seabed point in a median of {self.views_per_point:g} training views "
-                       f"({self.passes_per_point:g} passes)")
+                       f"({self.passes_per_point:g} passes"
+                       + (f", {self.looks_per_point:.1f} independent looks at the light)" if self.looks_per_point else ")"))
         if self.seconds_per_1000 is not None:
             out.append(f"time: about {self.seconds_per_1000:.0f} s per 1,000 steps now ({self.gaussians:,} "
                        f"Gaussians, {self.path} path); steps slow down as the model grows")
@@ -239,6 +241,7 @@ def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, 
     cov = sparse_coverage(data)
     if cov.points:
         plan.views_per_point, plan.passes_per_point = cov.median_views, cov.median_passes
+        plan.looks_per_point = cov.median_looks
         if caustics and cov.median_looks < MIN_PASSES:
             plan.notes.append(coverage_advice(cov.median_views, cov.median_looks))
     plan.seconds_per_1000, plan.path = time_steps(trainer, warmup_steps)
