@@ -164,8 +164,8 @@ def bound(views, settings, overlap, ids, gts) -> None:
         m = (valid & (key <= key.amin(0, keepdim=True) + np.log1p(settings.floor_tol))).float()
         chosen.append(torch.einsum("fhwc,fhw->hwc", samples, m) / m.sum(0).clamp_min(1e-6).unsqueeze(-1))
         counts.append(valid.sum(0))
-    modelled = passes.frame_lights(owns, truth, [v.covered for v in views], settings)
-    field = [passes.field_colour(o, f, L, v.covered, settings) for o, f, L, v in zip(owns, floors, modelled, views)]
+    field = [passes.field_colour(o, f, passes.frame_light(o, t, v.covered, settings), v.covered, settings)
+             for o, f, t, v in zip(owns, floors, truth, views)]
     for name, stats in (("field, light modelled against the true colour", field),
                         ("floor, frames chosen by their true light", chosen)):
         gains = gain_by_count(owns, stats, counts)

@@ -9,7 +9,7 @@ from conftest import write_rendered_scene
 from recgs_addon.core.errors import SceneError
 from recgs_addon.core.io.frames import read_frame_times, write_frame_times
 from recgs_addon.core.train.config import preset
-from recgs_addon.core.train.coverage import correlation, looks_of, passes_of, sparse_coverage, surface_coverage
+from recgs_addon.core.train.coverage import looks_of, passes_of, sparse_coverage, surface_coverage
 from recgs_addon.core.train.trainer import make_trainer
 
 
@@ -68,7 +68,7 @@ def test_looks_count_frames_by_how_much_light_they_share():
     rng = np.random.default_rng(0)
     seen = rng.random((40, 15)) < 0.5
     times = np.sort(rng.random(15) * 6)
-    rho = correlation(list(times), 0.7).double().numpy()
+    rho = np.exp(-np.abs(times[:, None] - times[None, :]) / 0.7)       # the light's correlation
     brute = [np.linalg.solve(rho[np.ix_(s, s)], np.ones(s.sum())).sum() if s.any() else 0.0 for s in seen]
     assert np.allclose(looks_of(seen, times, 0.7), brute, rtol=1e-5)
     assert np.array_equal(looks_of(seen, None), seen.sum(1))           # photos: each a look

@@ -278,7 +278,7 @@ def test_a_frames_light_is_modelled_through_the_colours_texture_error():
     photo = colour * torch.exp(true).unsqueeze(-1)
     error = 0.1 * torch.randn(H, W, generator=rng)                 # the estimate's texture error (log units)
     wrong = colour * torch.exp(error).unsqueeze(-1)
-    light = P.frame_lights([photo], [wrong], [torch.ones(H, W, dtype=torch.bool)], P.PassSettings())[0]
+    light = P.frame_light(photo, wrong, torch.ones(H, W, dtype=torch.bool), P.PassSettings())
     assert (light - true).abs().mean() < 0.35 * error.abs().mean(), float((light - true).abs().mean())
     inside = true > 0
     assert abs(float(light[inside].mean()) - 0.7) < 0.08

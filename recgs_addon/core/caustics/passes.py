@@ -36,7 +36,7 @@ each training frame ``i``:
    grey log-ratio of its photo to the floor colour, denoised by total variation (the light at
    one instant is one continuous field of long lines and dark cells; what the floor got
    wrong, resampled texture and noise, is flattened) and kept where it is above the floor
-   (:func:`frame_lights`). The colour is then the frame's own photo with its modelled light
+   (:func:`frame_light`). The colour is then the frame's own photo with its modelled light
    taken off (it needs no resampling, so it keeps the detail the warped frames blur), the
    floor where the photo was under a bright line whose level is least certain
    (:func:`field_colour`); calibrated per number of frames as the floor is.
@@ -230,8 +230,9 @@ def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] =
         passes.append(npass)
         owns.append(samples[0])
     if s.statistic == "field":   # the light, then the colour
-        lights = frame_lights(owns, stats, [views[i].covered for i in ids], s)
-        stats = [field_colour(o, f, L, views[i].covered, s) for o, f, L, i in zip(owns, stats, lights, ids)]
+        for k, i in enumerate(ids):
+            stats[k] = field_colour(owns[k], stats[k], frame_light(owns[k], stats[k], views[i].covered, s),
+                                    views[i].covered, s)
     # the floor is darker than the mean light by a factor that depends on how many frames it
     # was taken over: calibrated on the photos themselves (they hold the mean light)
     if gains is None:
@@ -309,26 +310,22 @@ def effective_looks(valid: torch.Tensor, times: Sequence[Optional[float]], light
     return looks
 
 
-def frame_lights(owns: Sequence[torch.Tensor], colours: Sequence[torch.Tensor], covered: Sequence[torch.Tensor],
-                 s: PassSettings) -> list[torch.Tensor]:
-    """Each frame's light over the floor, in its own image (H, W; log units): the grey log-ratio
-    of its photo ``owns`` (linear) to its colour estimate ``colours`` (linear, under the floor
+def frame_light(own: torch.Tensor, colour: torch.Tensor, covered: torch.Tensor, s: PassSettings) -> torch.Tensor:
+    """A frame's light over the floor, in its own image (H, W; log units): the grey log-ratio
+    of its photo ``own`` (linear) to its colour estimate ``colour`` (linear, under the floor
     light), denoised by total variation (the light is one continuous field of lines and cells;
     what the colour estimate got wrong is texture and noise, which it flattens) and kept where
     it is above the floor (caustics add light over it)."""
-    out = []
-    for photo, colour, cov in zip(owns, colours, covered):
-        r = torch.log(photo.mean(-1).clamp_min(0) + 0.01) - torch.log(colour.mean(-1).clamp_min(0) + 0.01)
-        r = torch.where(cov, r, torch.zeros_like(r))
-        w = cov.to(r.dtype) + 1e-3
-        out.append(tv_denoise(r.unsqueeze(0), s.field_lambda, w.unsqueeze(0), iters=FIELD_ITERS)[0].clamp_min(0))
-    return out
+    r = torch.log(own.mean(-1).clamp_min(0) + 0.01) - torch.log(colour.mean(-1).clamp_min(0) + 0.01)
+    r = torch.where(covered, r, torch.zeros_like(r))
+    w = covered.to(r.dtype) + 1e-3
+    return tv_denoise(r.unsqueeze(0), s.field_lambda, w.unsqueeze(0), iters=FIELD_ITERS)[0].clamp_min(0)
 
 
 def field_colour(own: torch.Tensor, floor: torch.Tensor, light: torch.Tensor, covered: torch.Tensor,
                  s: PassSettings) -> torch.Tensor:
     """A frame's colour under the floor light (H, W, 3, linear): its own photo ``own`` with its
-    modelled ``light`` (:func:`frame_lights`) taken off, where that light is known well enough
+    modelled ``light`` (:func:`frame_light`) taken off, where that light is known well enough
     (the floor best: its weight falls as ``exp((field_trust - light) / field_kappa)``), the
     passes' ``floor`` where the photo was under a bright line (where the light is strongest its
     level is least certain). The photo needs no resampling, so it keeps the detail that the

@@ -78,21 +78,11 @@ def _summarise(counts: np.ndarray, passes: np.ndarray, source: str, looks: np.nd
                     [int(h) for h in hist], source, round(float(np.median(looks)), 2))
 
 
-def correlation(times, light_seconds: float = LIGHT_SECONDS) -> torch.Tensor:
-    """(F, F) the light's correlation between frames at ``times`` (seconds; None: a photo
-    without a time, independent of every other): ``exp(-|t_f - t_g| / light_seconds)``."""
-    n = len(times)
-    if n == 0 or any(t is None for t in times) or not light_seconds > 0:
-        return torch.eye(n)
-    t = torch.tensor([float(x) for x in times], dtype=torch.float64)
-    return torch.exp(-(t[:, None] - t[None, :]).abs() / light_seconds).float()
-
-
 def looks_of(seen: np.ndarray, times: Optional[np.ndarray] = None, light_seconds: float = LIGHT_SECONDS) -> np.ndarray:
     """(P,) independent looks at the light per point from ``seen`` (P, V) bool over views in
     time order (``times`` (V,) seconds): how many independent samples of the light its views
-    are worth, ``1' rho^-1 1`` for the light's correlation ``rho`` between them
-    (:func:`correlation`). For that exponential correlation it sums over each point's views in
+    are worth, ``1' rho^-1 1`` for the light's correlation ``rho = exp(-|dt| / light_seconds)``
+    between them. For that exponential correlation it sums over each point's views in
     time order, ``1 + sum (1 - a) / (1 + a)`` with ``a = exp(-dt / light_seconds)`` between a
     view and the one before: a view of the same instant adds nothing, one of independent light
     adds 1. The count of views where ``times`` is None."""
