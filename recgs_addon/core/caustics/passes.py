@@ -66,7 +66,7 @@ import numpy as np
 import torch
 
 from ..model.colour import linear_to_srgb, srgb_to_linear
-from ..train.coverage import DEPTH_TOL, LIGHT_SECONDS, PASS_SECONDS
+from ..train.coverage import DEPTH_TOL, LIGHT_SECONDS, PASS_SECONDS, looks_of
 from .consensus import apply_count_gain, backproject, gain_by_count
 from .geometry import PassView, depth_map, overlap_matrix, smooth, warp
 from .tv import tv_denoise
@@ -296,18 +296,14 @@ def floor_statistic(samples: torch.Tensor, valid: torch.Tensor, tol: float = 0.1
 
 def effective_looks(valid: torch.Tensor, times: Sequence[Optional[float]], light_seconds: float) -> torch.Tensor:
     """(H, W) the independent looks at the light each pixel got from the frames that saw it
-    (``valid`` (F, H, W), the frames' ``times``), as :func:`.coverage.looks_of` counts them:
-    each frame adds ``(1 - a) / (1 + a)``, ``a`` the light's correlation with the frame before
-    it in time that saw the pixel (1 for a frame of the same instant, 0 for independent light)."""
-    if any(t is None for t in times) or not light_seconds > 0:
-        return valid.sum(0).to(torch.float32)
-    looks = torch.zeros(valid.shape[1:])
-    last = torch.full(valid.shape[1:], -math.inf)
-    for f in sorted(range(len(times)), key=lambda k: times[k]):
-        a = torch.exp(-(times[f] - last) / light_seconds)
-        looks += valid[f] * (1 - a) / (1 + a)
-        last = torch.where(valid[f], torch.full_like(last, times[f]), last)
-    return looks
+    (``valid`` (F, H, W), the frames' ``times``), counted as :func:`.coverage.looks_of` counts a
+    seabed point's: a frame of the same instant as another adds nothing, one of independent
+    light adds 1."""
+    timed = all(t is not None for t in times)
+    order = sorted(range(len(times)), key=lambda k: times[k]) if timed else list(range(len(times)))
+    seen = valid[order].reshape(len(order), -1).T.cpu().numpy()
+    looks = looks_of(seen, np.asarray([times[k] for k in order], float) if timed else None, light_seconds)
+    return torch.from_numpy(looks).float().reshape(valid.shape[1:]).to(valid.device)
 
 
 def frame_light(own: torch.Tensor, colour: torch.Tensor, covered: torch.Tensor, s: PassSettings) -> torch.Tensor:
