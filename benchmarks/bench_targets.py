@@ -13,8 +13,8 @@ points refined by the plane sweep: what a run uses), ``true`` (the generator's d
 estimator's ceiling) or ``model`` (the given model's own rendered depth, unrefined). Each of
 ``--statistics`` is measured (``floor``: the floor of the light; ``field``: each frame's light
 modelled, then the colour), with the independent looks a pixel had. ``--bound`` (with the true
-depth) adds the statistics' ceilings: the field's light modelled against the true colour
-instead of the floor's, and the floor taken over the frames whose *true* light is lowest.
+depth) adds the statistics' ceilings: each photo with its true light, denoised as the field
+denoises its light, taken off, and the floor taken over the frames whose *true* light is lowest.
 Prints the time of each part.
 """
 from __future__ import annotations
@@ -142,10 +142,13 @@ def main(argv=None) -> int:
 
 
 def bound(views, settings, overlap, ids, gts) -> None:
-    """The statistics' ceilings on this geometry: the field's light modelled against the true
-    colour (the clean frames) instead of the floor's, and the floor taken over the frames whose
-    *true* light is lowest instead of their blurred grey level."""
+    """The statistics' ceilings on this geometry: each frame's photo with its *true* light (photo
+    over clean frame) taken off after the same denoising the field gives its modelled light
+    (what a light of that form can represent), and the floor taken over the frames whose true
+    light is lowest instead of their blurred grey level (what the floor's choice of frames
+    costs)."""
     from recgs_addon.core.caustics.consensus import apply_count_gain, gain_by_count
+    from recgs_addon.core.caustics.tv import tv_denoise
     from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
 
     truth = [srgb_to_linear(gts[i].clamp(0, 1)) for i in ids]
@@ -164,9 +167,12 @@ def bound(views, settings, overlap, ids, gts) -> None:
         m = (valid & (key <= key.amin(0, keepdim=True) + np.log1p(settings.floor_tol))).float()
         chosen.append(torch.einsum("fhwc,fhw->hwc", samples, m) / m.sum(0).clamp_min(1e-6).unsqueeze(-1))
         counts.append(valid.sum(0))
-    field = [passes.field_colour(o, f, passes.frame_light(o, t, v.covered, settings), v.covered, settings)
-             for o, f, t, v in zip(owns, floors, truth, views)]
-    for name, stats in (("field, light modelled against the true colour", field),
+    # each frame's true light (both signs) denoised as the field denoises its light: what a
+    # light of that form can take out of the photo, with the colour it is measured against exact
+    field = [o * torch.exp(-tv_denoise(light.unsqueeze(0), settings.field_lambda, v.covered.float().unsqueeze(0) + 1e-3,
+                                       iters=passes.FIELD_ITERS)[0]).unsqueeze(-1)
+             for o, light, v in zip(owns, true_light, views)]
+    for name, stats in (("field, each frame's true light in the field's form", field),
                         ("floor, frames chosen by their true light", chosen)):
         gains = gain_by_count(owns, stats, counts)
         out = [linear_to_srgb(apply_count_gain(x, c, passes._for_counts(gains, c)).clamp_min(0)) for x, c in zip(stats, counts)]
