@@ -128,7 +128,7 @@ def main(argv=None) -> int:
           f"decorrelation time {light.get('light_seconds')} s (shared variance by lag {light['shared']}; {t_light:.1f} s)")
     if args.set:
         print(f"  settings: {', '.join(args.set)}")
-    for stat in args.statistics.split(","):
+    for stat in filter(None, args.statistics.split(",")):
         t = time.perf_counter()
         targets, info = passes.pass_targets(views, dataclasses.replace(settings, statistic=stat), fallback,
                                             overlap=overlap)
