@@ -7,10 +7,12 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
+import torch
 
 from ..caustics.config import CAUSTIC_MODES
 from ..io.atomic import atomic_path
 from ..io.images import read_image
+from ..model.colour import srgb_to_linear
 from ..train.plan import MIN_PASSES, coverage_advice
 from . import plot
 
@@ -21,15 +23,19 @@ def _f(v, digits=2) -> str:
     return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
 
+def _statistic(p: dict) -> str:
+    """The pass estimator's statistic in words (a run from before the choice used the floor)."""
+    return {"field": "each frame's light modelled, then the colour"}.get(p.get("statistic"), "the floor of the light")
+
+
 def _passes_row(p: dict) -> str:
     """What the pass estimator cost and drew on, in one table cell."""
     if p.get("share") is None:
         return f"none made: moving light of {p.get('light_std')} log units measured between frames ({p.get('seconds')} s)"
     looks = f", {p['median_looks']:g} independent looks" if p.get("median_looks") is not None else ""
-    how = {"field": "each frame's light modelled, then the colour", "floor": "the floor of the light"}
     return (f"{p.get('seconds')} s (geometry, gathers and references, once); {100 * p.get('share', 0):.0f} % of "
             f"the training pixels from the passes (median {p.get('median_passes'):g} passes a pixel{looks}; "
-            f"{how.get(p.get('statistic'), 'the floor of the light')}), the rest low-pass; moving light "
+            f"{_statistic(p)}), the rest low-pass; moving light "
             f"{p.get('light_std')} log units, frames under {p.get('pass_seconds')} s apart one pass"
             + (f", its decorrelation time {p['light_seconds']:g} s" if p.get("light_seconds") else ""))
 
@@ -180,11 +186,10 @@ def modelled_light(photo: np.ndarray, free: np.ndarray) -> np.ndarray:
     """The light a run took out of a photo, as an image: the grey ratio of the photo to its
     caustic-free image in linear light, on a log scale (mid-grey: none; white: twice the light
     or more; black: half or less)."""
-    def linear(x):
-        x = np.clip(x, 0, 1)
-        return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).mean(-1)
+    def grey(x):
+        return srgb_to_linear(torch.from_numpy(np.clip(x, 0, 1))).mean(-1).numpy()
 
-    ratio = (linear(photo) + 0.01) / (linear(free) + 0.01)
+    ratio = (grey(photo) + 0.01) / (grey(free) + 0.01)
     return np.repeat(plot.signed_map(np.log2(ratio)[..., None], 1.0), 3, -1)
 
 
@@ -193,9 +198,7 @@ def _supplied(p: dict, name: str) -> list[str]:
     share = (p.get("share_per_frame") or {}).get(name)
     if share is None:
         return []
-    how = {"field": "each frame's light modelled, then the colour", "floor": "the floor of the light"}
-    return [f"{100 * share:.0f} % of this view's pixels from the passes that saw them "
-            f"({how.get(p.get('statistic'), p.get('statistic') or 'the floor of the light')}), "
+    return [f"{100 * share:.0f} % of this view's pixels from the passes that saw them ({_statistic(p)}), "
             f"{100 * (1 - share):.0f} % from its own low-pass estimate.", ""]
 
 

@@ -254,10 +254,10 @@ def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, 
 MIN_PASSES = 6
 
 
-def coverage_advice(views: float, passes: float) -> str:
+def coverage_advice(views: float, looks: float) -> str:
     """What to tell a user whose survey sees each point too few times for caustic removal."""
     return (f"caustic removal needs each seabed point in about {MIN_PASSES} or more independent looks at the "
-            f"light (photos, or video frames whose light had time to change); this survey has a median of {passes:.1f} "
+            f"light (photos, or video frames whose light had time to change); this survey has a median of {looks:.1f} "
             f"({views:g} views). Photograph with more overlap (80 % forward, 60 % side) or keep more frames "
             "of a video; expect caustics to stay partly in the model")
 
