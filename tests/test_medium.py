@@ -198,6 +198,25 @@ def test_auto_models_the_water_only_where_there_is_some(water_scenes):
     assert np.abs(wet.true_point_colours().astype(float) - wet.data.scene.colors).mean() < 25
 
 
+def test_a_survey_with_caustics_fits_its_water_under_the_light(water_scenes, monkeypatch):
+    """Where the light finding saw caustics, the points' fit is asked to measure the moving
+    light (this scene's light is still: it says the light is too weak and keeps the plain fit)."""
+    from recgs_addon.core.train import water
+    from recgs_addon.core.train.trainer import Trainer, load_data
+
+    asked = []
+    real = water.fit_from_points
+    monkeypatch.setattr(water, "fit_from_points", lambda *a, **k: asked.append(k.get("moving_light")) or real(*a, **k))
+    cfg = _cfg()
+    still = Trainer(load_data(water_scenes / "water", cfg), cfg)
+    caustics = Trainer(load_data(water_scenes / "water", cfg), cfg, light={"caustics": True, "moving": 0.2})
+    assert asked == [False, True]
+    assert still.medium_info["prefit_under_light"] is None
+    under = caustics.medium_info["prefit_under_light"]
+    assert under["under_light"] is False and under["light_noise"][0] < 3 * under["light_noise"][1]
+    assert caustics.medium is not None
+
+
 def test_true_colour_is_learned_through_the_water_and_resumes_exactly(water_scenes):
     """Trained through the water, the true-colour renders come close to the true colour (far
     closer than a run that takes the water in); a checkpoint taken mid-run resumes to the same

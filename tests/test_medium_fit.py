@@ -11,18 +11,22 @@ from recgs_addon.core.train import water
 TRUE = {"attenuation": [0.5, 0.12, 0.18], "backscatter": [0.4, 0.18, 0.22], "veil": [0.02, 0.09, 0.07]}
 
 
-def _observations(n=600, per=8, spread=1.3, near=(2.6, 4.5), noise=0.0, outliers=0.0, water=TRUE, seed=0):
+def _observations(n=600, per=8, spread=1.3, near=(2.6, 4.5), noise=0.0, outliers=0.0, water=TRUE, seed=0,
+                  light=0.0):
     """``n`` points of random colour, each seen ``per`` times from ranges within x``spread`` of
-    its nearest (which varies from point to point: one altitude over relief)."""
+    its nearest (which varies from point to point: one altitude over relief). ``light``: the
+    seabed's colour in each view times a grey gain of mean 1 (caustics: mostly a dim cell's
+    ``1 - light``, now and then a bright line; a gamma distribution, skewed), else 1."""
     rs = np.random.default_rng(seed)
     J = rs.uniform(0.02, 0.6, (n, 3))
     point = np.repeat(np.arange(n), per)
     r0 = rs.uniform(*near, n)[point]
     rng = r0 * rs.uniform(1.0, spread, point.size)
-    y = J[point].copy()
+    gain = (1 - light) + light * rs.gamma(0.5, 2.0, point.size) if light else np.ones(point.size)
+    y = J[point] * gain[:, None]
     if water is not None:
         att, back, veil = (np.asarray(water[k]) for k in ("attenuation", "backscatter", "veil"))
-        y = J[point] * np.exp(-att * rng[:, None]) + veil * (1 - np.exp(-back * rng[:, None]))
+        y = y * np.exp(-att * rng[:, None]) + veil * (1 - np.exp(-back * rng[:, None]))
     y = y + noise * rs.standard_normal(y.shape)
     bad = np.flatnonzero(rs.random(point.size) < outliers)   # another point's colour (occlusion)
     y[bad] = rs.uniform(0, 1, (bad.size, 3))
@@ -147,3 +151,92 @@ def test_cues_say_where_the_fit_is_unlike_natural_water():
     f = _fit_dict([0.5, 0.2, 0.1], [0.01] * 3)   # blue travels furthest, but the veil is greenest
     f["J_mean"] = [0.3, 0.25, 0.2]
     assert [c for c in water.cues(f) if "brightest in green but the water takes blue least" in c]
+
+
+def _relative_error(att) -> np.ndarray:
+    return np.abs(np.asarray(att) / TRUE["attenuation"] - 1)
+
+
+def test_under_moving_light_the_fit_measures_the_light_where_the_plain_fit_is_biased():
+    """Sharp caustics at one altitude: every view's seabed colour times a skewed grey gain of
+    mean 1. The plain fit (each point's colour projected out, robust) reads the attenuation
+    tens of per cent off; the fit under light is within a few per cent in every channel, and
+    its points' colours are the light's mean."""
+    point, rng, y, J = _observations(n=1500, per=10, light=0.9, noise=0.002, seed=20)
+    n, length = int(point.max()) + 1, float(np.median(rng))
+    plain = medium_fit.fit_water(point, n, rng, y, length)
+    light = medium_fit.fit_water(point, n, rng, y, length, moving_light=True)
+    assert light["under_light"] and "under_light" not in plain
+    assert _relative_error(plain["attenuation"]).max() > 0.15, plain["attenuation"]
+    assert _relative_error(light["attenuation"]).max() < 0.06, light["attenuation"]
+    veil_at = [v * (1 - np.exp(-b * length)) for v, b in zip(TRUE["veil"], TRUE["backscatter"])]
+    assert np.allclose(light["veil_at_length"], veil_at, rtol=0.15, atol=2e-3), light["veil_at_length"]
+    # each point's colour holds its few views' light, but not its geometric mean: unbiased
+    assert np.allclose(light["J"].mean(0) / J.mean(0), 1, atol=0.05), light["J"].mean(0) / J.mean(0)
+
+
+def test_the_fit_under_light_gives_still_light_its_water_too():
+    """Where the light finding was wrong (no light moves), the fit under light still measures
+    the water: the log ratios then hold only the photos' noise."""
+    point, rng, y, _ = _observations(n=800, noise=0.003, seed=21)
+    f = medium_fit.fit_water(point, int(point.max()) + 1, rng, y, float(np.median(rng)), moving_light=True)
+    assert _relative_error(f["attenuation"]).max() < 0.05, f["attenuation"]
+
+
+def test_the_log_ratio_of_two_channels_holds_no_light():
+    """With the true water, each point's log ratio of a channel's seabed part to green's is one
+    number whatever the light's gain in each view: the residuals vanish (float64)."""
+    import torch
+
+    point, rng, y, _ = _observations(n=200, per=6, light=0.9, seed=22)
+    lf = medium_fit._LightFit(torch.from_numpy(point), int(point.max()) + 1, torch.from_numpy(rng),
+                              torch.from_numpy(y), float(np.median(rng)), torch.ones(point.size, dtype=torch.float64))
+    length = float(np.median(rng))
+    att = torch.tensor(TRUE["attenuation"], dtype=torch.float64)
+    rate = torch.tensor(TRUE["backscatter"], dtype=torch.float64)
+    v_len = torch.tensor(TRUE["veil"], dtype=torch.float64) * -torch.expm1(-rate * length)
+    lf.eps = torch.full((3,), 1e-12, dtype=torch.float64)   # every colour is above its veil here
+    h = torch.ones(point.size, 2, dtype=torch.float64)
+    res = lf.chroma(v_len, att[[0, 2]] - att[1], rate, h)
+    assert float(res.abs().max()) < 1e-9
+    wrong = lf.chroma(v_len * 1.5, att[[0, 2]] - att[1], rate, h)
+    assert float(wrong.abs().max()) > 1e-3
+
+
+def test_levenberg_marquardt_finds_a_least_squares_minimum():
+    """A curve with parameters of very different scales: the damped steps reach the minimum
+    (the gradient of the squared error vanishes, checked by central differences in float64)."""
+    import torch
+
+    x = torch.linspace(0, 4, 50, dtype=torch.float64)
+    y = 2.5 * torch.exp(-0.7 * x) + 0.004 + 0.01 * torch.sin(7 * x)
+
+    def residuals(t):
+        return t[0] * torch.exp(-t[1] * x) + t[2] - y
+    theta = medium_fit._levenberg_marquardt(residuals, torch.tensor([1.0, 0.2, 0.5], dtype=torch.float64), 60)
+    assert abs(float(theta[1]) - 0.7) < 0.02
+
+    def loss(t):
+        r = residuals(t)
+        return float(r @ r)
+    for k in range(3):
+        step = torch.zeros(3, dtype=torch.float64)
+        step[k] = 1e-6 * max(abs(float(theta[k])), 1e-3)
+        grad = (loss(theta + step) - loss(theta - step)) / (2 * float(step[k]))
+        assert abs(grad) * max(abs(float(theta[k])), 1e-3) < 1e-6 * max(loss(theta), 1e-12) + 1e-12, (k, grad)
+
+
+def test_the_report_says_whether_the_points_fit_measured_the_moving_light():
+    from recgs_addon.core.outputs.report import _water_section
+
+    medium = {"coefficients": {"attenuation": [0.47, 0.2, 0.31], "backscatter": [0.3] * 3, "veil": [0.02, 0.08, 0.06]},
+              "reason": "the sparse points show water",
+              "prefit_under_light": {"under_light": True, "light_noise": [0.42, 0.012],
+                                     "plain_attenuation": [0.63, 0.326, 0.44]}}
+    text = "\n".join(_water_section(medium))
+    assert "measured it" in text and "35 times the photos' own noise" in text and "0.630 / 0.326 / 0.440" in text
+    medium["prefit_under_light"] = {"under_light": False, "light_noise": [0.05, 0.04], "plain_attenuation": [0.5] * 3}
+    text = "\n".join(_water_section(medium))
+    assert "too little to measure the water by" in text and "1.2 times" in text
+    medium["prefit_under_light"] = None   # no moving light found: nothing said
+    assert "moving light" not in "\n".join(_water_section(medium))

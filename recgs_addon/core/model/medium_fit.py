@@ -14,6 +14,19 @@ loss (iteratively reweighted least squares, the scale from the residuals' median
 deviation). The veil is searched as its value at the survey's median range ``length`` and its
 rate, which a survey flown at one height pins very differently (the first well, the rate hardly).
 
+Under light that moves over the seabed (sunlight caustics) every observation's seabed part is
+multiplied by a gain of mean 1 that changes from view to view, ``y_k = g_k J_p exp(-attenuation
+r_k) + V(r_k)``, and the fit above is biased for such errors, robust or not: with each point's
+colour projected out, the noise the projection leaves depends on the attenuation (on generated
+surveys under caustics a channel read 8-88 % too high). :func:`fit_under_light` uses the light instead. The gain is
+grey (the same in every channel, in linear light), so the log ratio of two channels' seabed parts
+``log((y_c - V_c) / (y_g - V_g)) = log(J_c / J_g) - (attenuation_c - attenuation_g) r`` holds no
+light at all: wrong veils make it change with the gain within a point, which pins the veil, and its
+slope with range is the channels' difference in attenuation. The attenuation common to all
+channels comes from green's log slope, ``log(y_g - V_g) = log J_g - attenuation_g r + log g``,
+where the light adds the same noise at every range. The veil's rate starts equal to each channel's
+attenuation (the single-coefficient model of the water) and is then searched too.
+
 The attenuation is searched over all real numbers: a survey without water gets a value near 0,
 either sign, and its spread says whether the photos show any (``z``, the attenuation over its
 spread). The spreads come from refitting on the points drawn again with replacement (the
@@ -34,6 +47,22 @@ IRLS_ROUNDS = 4
 RATE_RANGE = (0.02, 8.0)
 #: Backscatter rates (times the median range) a cold fit starts from.
 COLD_RATES = (0.1, 0.5, 2.0)
+#: Under moving light: the seabed's part of a colour is compared in logs above this share of
+#: the channel's median colour (a darker one is mostly noise and veil).
+LOG_FLOOR = 0.05
+#: ... rounds with the veil's rate tied to the attenuation, then with it searched.
+TIED_ROUNDS = 3
+FREE_ROUNDS = 2
+#: ... the channel whose log slope gives the attenuation common to all (green: the brightest
+#: under water, and the one the veil's colour and the light's gain are measured against).
+REFERENCE = 1
+#: The light's spread from view to view over the photos' noise from which the fit under light
+#: is used (on points under a skewed light of mean 1: at 1.2 times the noise it read red 18 %
+#: off where the plain fit read 1.5 %; at 2.6 both within 3-7 %; at 5 and above it was the
+#: closer, and the surveys under caustic networks here measure 35-64).
+LIGHT_OVER_NOISE = 3.0
+#: Observations the refits under moving light use at most (they measure the spread).
+REFIT_OBSERVATIONS = 12_000
 #: Quantile of a channel's observed colours the veil in front of them stays below (high enough
 #: that the noise of the darkest colours does not pull the bound under the veil).
 DARKEST = 0.25
@@ -51,7 +80,7 @@ def _point_colours(pt, n, a, z, w):
     return num / den.clamp_min(1e-12)
 
 
-def _huber_weights(res: torch.Tensor, scale: float) -> torch.Tensor:
+def _huber_weights(res: torch.Tensor, scale) -> torch.Tensor:
     return (HUBER_K * scale / res.abs().clamp_min(1e-12)).clamp(max=1.0)
 
 
@@ -181,8 +210,177 @@ def veil_from(backscatter: float, veil_at_length: float, length: float) -> float
     return veil_at_length / max(-np.expm1(-backscatter * length), 1e-12)
 
 
+def _levenberg_marquardt(residuals, theta: torch.Tensor, iterations: int) -> torch.Tensor:
+    """Least squares of ``residuals(theta)`` (a vector) over a few parameters by Levenberg and
+    Marquardt's damped Gauss-Newton steps (the Jacobian by forward differentiation): the
+    parameters here differ in scale by orders, where a quasi-Newton search crawls."""
+    theta = theta.detach().clone()
+    res = residuals(theta)
+    loss = float(res @ res)
+    damping = 1e-3
+    for _ in range(iterations):
+        jac = torch.func.jacfwd(residuals)(theta)
+        jtj, jtr = jac.T @ jac, jac.T @ res
+        diag = torch.diag(jtj).clamp_min(1e-12)
+        while True:
+            step = torch.linalg.solve(jtj + damping * torch.diag(diag), -jtr)
+            trial = theta + step
+            r_trial = residuals(trial)
+            new = float(r_trial @ r_trial)
+            if np.isfinite(new) and new <= loss:
+                break
+            damping *= 4.0
+            if damping > 1e8:
+                return theta
+        improvement = (loss - new) / max(loss, 1e-300)
+        theta, res, loss = trial, r_trial, new
+        damping = max(damping / 4.0, 1e-9)
+        if improvement < 1e-9:
+            break
+    return theta
+
+
+def _point_mean(pt, n, x, w):
+    """Each point's weighted mean of ``x`` (K,) or (K, C) with weights ``w`` of the same shape."""
+    shape = (n,) + tuple(x.shape[1:])
+    num = torch.zeros(shape, dtype=x.dtype).index_add_(0, pt, w * x)
+    return num / torch.zeros(shape, dtype=x.dtype).index_add_(0, pt, w).clamp_min(1e-12)
+
+
+class _LightFit:
+    """:func:`fit_under_light`'s parts over one set of observations (float64)."""
+
+    #: Levenberg-Marquardt's steps in each reweighting round.
+    MAX_ITER = 30
+
+    def __init__(self, pt, n, r, y, length, w):
+        self.pt, self.n, self.r, self.y, self.length, self.w = pt, n, r, y, length, w
+        used = w > 0
+        self.eps = LOG_FLOOR * y[used].median(0).values.clamp_min(1e-6)
+        self.cap = torch.quantile(y[used], DARKEST, dim=0).clamp_min(1e-6)
+        self.lo, self.hi = np.log(RATE_RANGE[0] / length), np.log(RATE_RANGE[1] / length)
+        self.others = [c for c in range(3) if c != REFERENCE]
+
+    def seabed(self, v_len, rate):
+        """(K, 3) each observation's colour less the veil in front of it."""
+        return self.y - v_len * _veil_curve(rate, self.r[:, None], self.length)
+
+    def chroma(self, v_len, diff, rate, h):
+        """(K, 2) each observation's log ratio of a channel's seabed part to the reference's, its
+        slope with range taken out and each point's mean projected out, in units of the colours'
+        noise (the delta method's standard error: a log ratio of dark colours is noisy; it moves
+        with the veil searched, which keeps a brighter veil from making every ratio one)."""
+        zc = self.seabed(v_len, rate).clamp_min(self.eps)
+        lz = torch.log(zc)
+        out = []
+        for j, c in enumerate(self.others):
+            q = lz[:, c] - lz[:, REFERENCE] + diff[j] * self.r
+            se = torch.sqrt(zc[:, c] ** -2 + zc[:, REFERENCE] ** -2)
+            out.append((q - _point_mean(self.pt, self.n, q, h[:, j])[self.pt]) / se)
+        return torch.stack(out, 1)
+
+    def unpack(self, t, rate):
+        v_len = self.cap * torch.sigmoid(t[:3])
+        if t.numel() > 5:
+            rate = torch.exp(self.lo + (self.hi - self.lo) * torch.sigmoid(t[5:8]))
+        return v_len, t[3:5], rate
+
+    def pack(self, v_len, diff, rate, free):
+        v = (v_len / self.cap).clamp(1e-4, 1 - 1e-4)
+        parts = [torch.log(v / (1 - v)), diff]
+        if free:
+            q = ((torch.log(rate) - self.lo) / (self.hi - self.lo)).clamp(1e-4, 1 - 1e-4)
+            parts.append(torch.log(q / (1 - q)))
+        return torch.cat(parts).double()
+
+    def fit_chroma(self, v_len, diff, rate, free: bool, rounds: int = 3):
+        """The veil (and with ``free`` its rate) and the channels' differences in attenuation
+        from the log ratios (Huber's weights, reweighted ``rounds`` times)."""
+        theta = self.pack(v_len, diff, rate, free)
+        h = self.w[:, None].expand(-1, 2).clone()
+        for _ in range(rounds):
+            theta = _levenberg_marquardt(lambda t: (h.sqrt() * self.chroma(*self.unpack(t, rate), h)).reshape(-1),
+                                         theta, self.MAX_ITER)
+            with torch.no_grad():
+                res = self.chroma(*self.unpack(theta, rate), h)
+                scale = torch.stack([torch.tensor(_robust_scale(res[:, j], self.w)) for j in range(2)]).double()
+                h = self.w[:, None] * _huber_weights(res, scale)
+        return self.unpack(theta, rate)
+
+    def log_slope(self, v_len, rate) -> float:
+        """The reference channel's attenuation from its seabed part's log slope with range (each
+        point's mean projected out; Huber's weights), given the veil."""
+        c = REFERENCE
+        z = self.seabed(v_len, rate)[:, c]
+        ok = self.w * (z > self.eps[c]).double()
+        lz = torch.log(z.clamp_min(self.eps[c]))
+        h = ok.clone()
+        att = 0.0
+        for _ in range(IRLS_ROUNDS + 2):
+            rd = self.r - _point_mean(self.pt, self.n, self.r, h)[self.pt]
+            ld = lz - _point_mean(self.pt, self.n, lz, h)[self.pt]
+            att = float(-(h * rd * ld).sum() / (h * rd * rd).sum().clamp_min(1e-12))
+            res = ld + att * rd
+            h = ok * _huber_weights(res, _robust_scale(res, ok))
+        return att
+
+    @torch.no_grad()
+    def light_and_noise(self, att, v_len, rate) -> tuple[float, float]:
+        """The light's spread from view to view (log units: the robust spread of each point's
+        seabed part in the reference channel, its range taken out, less the photos' own noise)
+        and that noise (the log ratios' spread, one channel's share)."""
+        lz = torch.log(self.seabed(v_len, rate).clamp_min(self.eps)) + att * self.r[:, None]
+        keep = self.w * (self.seabed(v_len, rate) > self.eps).all(1).double()
+        grey = lz[:, REFERENCE] - _point_mean(self.pt, self.n, lz[:, REFERENCE], keep)[self.pt]
+        ratios = [lz[:, c] - lz[:, REFERENCE] for c in self.others]
+        chroma = torch.cat([q - _point_mean(self.pt, self.n, q, keep)[self.pt] for q in ratios])
+        noise = _robust_scale(chroma, keep.repeat(2)) / np.sqrt(2.0)
+        total = _robust_scale(grey, keep)
+        return float(np.sqrt(max(total ** 2 - noise ** 2, 0.0))), float(noise)
+
+    def run(self, attenuation, v_len, rate=None, tied: int = TIED_ROUNDS, free: int = FREE_ROUNDS):
+        att = torch.as_tensor(attenuation, dtype=torch.float64)
+        v_len = torch.minimum(torch.as_tensor(v_len, dtype=torch.float64).clamp_min(1e-6), 0.99 * self.cap)
+        bounds = (RATE_RANGE[0] / self.length, RATE_RANGE[1] / self.length)
+        for k in range(tied + free):
+            if k < tied or rate is None:
+                rate = att.clamp(*bounds)
+            diff = att[self.others] - att[REFERENCE]
+            v_len, diff, rate = self.fit_chroma(v_len, diff, rate, free=k >= tied)
+            v_len, diff, rate = v_len.detach(), diff.detach(), rate.detach()
+            ref = self.log_slope(v_len, rate)
+            att = torch.empty(3, dtype=torch.float64)
+            att[REFERENCE] = ref
+            att[self.others] = diff + ref
+        return att, v_len, rate
+
+
+def fit_under_light(point, n: int, rng, colour_lin, length: float, start: dict, w=None,
+                    tied: int = TIED_ROUNDS, free: int = FREE_ROUNDS) -> dict:
+    """The water under light that moves over the seabed (module docstring), from the fit
+    ``start`` (:func:`fit_water`'s: attenuation, backscatter, veil_at_length per channel).
+    Returns per channel ``attenuation``, ``backscatter`` (the veil's rate), ``veil_at_length``
+    and ``veil``, and ``J`` (n, 3) each point's linear colour under the light's mean."""
+    pt = torch.as_tensor(np.asarray(point, np.int64))
+    r = torch.as_tensor(np.asarray(rng, np.float64))
+    y = torch.as_tensor(np.asarray(colour_lin, np.float64))
+    w = torch.ones(len(r), dtype=torch.float64) if w is None else torch.as_tensor(w, dtype=torch.float64)
+    lf = _LightFit(pt, n, r, y, length, w)
+    rate0 = None if tied else torch.as_tensor(start["backscatter"], dtype=torch.float64)
+    att, v_len, rate = lf.run(start["attenuation"], start["veil_at_length"], rate0, tied, free)
+    with torch.no_grad():   # the colours under the light's mean: least squares with the water fixed
+        a = torch.exp(-att * r[:, None])
+        z = lf.seabed(v_len, rate)
+        w3 = w[:, None].expand(-1, 3)
+        j = _point_mean(pt, n, a * z, w3) / _point_mean(pt, n, a * a, w3).clamp_min(1e-12)
+    light, noise = lf.light_and_noise(att, v_len, rate)
+    return {"attenuation": att.tolist(), "backscatter": rate.tolist(), "veil_at_length": v_len.tolist(),
+            "veil": [veil_from(b, v, length) for b, v in zip(rate.tolist(), v_len.tolist())], "J": j.numpy(),
+            "light_noise": [light, noise]}
+
+
 def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray, length: float,
-              rounds: int = 0, seed: int = 0) -> dict:
+              rounds: int = 0, seed: int = 0, moving_light: bool = False) -> dict:
     """The water of every channel from observations (``point`` (K,) ids below ``n``, ``rng``
     (K,), ``colour_lin`` (K, 3) linear colours) and, with ``rounds`` > 0, how well they pin it.
 
@@ -190,38 +388,76 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     and ``veil_at_length``; ``J`` (n, 3) the points' linear colours; ``gain`` the share of the
     points' robust colour change from view to view the water takes away; with ``rounds``:
     ``spread`` (per coefficient and channel, the standard deviation of the refits or the
-    Gauss-Newton standard error, whichever is larger; absolute)."""
+    Gauss-Newton standard error, whichever is larger; absolute).
+
+    ``moving_light``: the photos hold light that moves over the seabed. The fit above then
+    starts :func:`fit_under_light`, which is returned where the light's spread from view to
+    view is at least :data:`LIGHT_OVER_NOISE` times the photos' own noise (the light is what
+    pins its veil; ``"under_light"`` says whether, ``"light_noise"`` both spreads). Refits then
+    use at most :data:`REFIT_OBSERVATIONS` of the observations (wider spreads, not narrower)."""
     pt = torch.from_numpy(np.asarray(point, np.int64))
     r = torch.from_numpy(np.asarray(rng, np.float64))
     y = torch.from_numpy(np.asarray(colour_lin, np.float64))
     fits = [fit_channel(pt, n, r, y[:, c], length) for c in range(3)]
     out = _collect(fits, length)
     out["J"] = torch.stack([f["J"] for f in fits], 1).numpy()
-    if rounds > 0:
-        gen = torch.Generator().manual_seed(seed)
-        used = torch.unique(pt)
-        draws = {k: [] for k in ("attenuation", "backscatter", "veil", "veil_at_length")}
-        for _ in range(rounds):
-            pick = used[torch.randint(len(used), (len(used),), generator=gen)]
-            count = torch.zeros(n, dtype=torch.float64).index_add_(0, pick, torch.ones(len(pick), dtype=torch.float64))
-            w = count[pt]
-            refit = _collect([fit_channel(pt, n, r, y[:, c], length, w,
-                                          start=(f["attenuation"], f["backscatter"], f["veil_at_length"]), warm=True,
-                                          errors=False)
-                              for c, f in enumerate(fits)], length)
-            for k in draws:
-                draws[k].append(refit[k])
-        boot = {k: np.std(np.asarray(v, np.float64), axis=0, ddof=1) for k, v in draws.items()}
+    sub = torch.arange(len(pt))
+    light = None
+    if moving_light:
+        light = fit_under_light(pt, n, r, y, length, out)
+        shown = light["light_noise"][0] >= LIGHT_OVER_NOISE * light["light_noise"][1]
+        out.update({"under_light": shown, "light_noise": light["light_noise"],
+                    "plain_attenuation": list(out["attenuation"])})
+        if shown:
+            out.update(light)
+        else:
+            light = None
+        if len(pt) > REFIT_OBSERVATIONS:
+            sub = torch.sort(torch.randperm(len(pt), generator=torch.Generator().manual_seed(seed + 1))
+                             [:REFIT_OBSERVATIONS]).values
+    if rounds <= 0:
+        return out
+    if light is not None:
+        boot = _bootstrap(lambda w: fit_under_light(pt[sub], n, r[sub], y[sub], length, light, w, tied=0, free=1),
+                          pt[sub], n, rounds, seed)
+        out["spread"] = {k: v.tolist() for k, v in boot.items()}
+    else:
+        boot = _bootstrap(lambda w: _collect([fit_channel(pt[sub], n, r[sub], y[sub, c], length, w,
+                                                          start=(f["attenuation"], f["backscatter"],
+                                                                 f["veil_at_length"]),
+                                                          warm=True, errors=False)
+                                              for c, f in enumerate(fits)], length), pt[sub], n, rounds, seed)
         # refits started from the fit cannot leave a flat valley: the spread is at least the
         # Gauss-Newton standard error (infinite where nothing pins a number)
-        sd = np.sqrt(np.array([f["variance"] for f in fits]))          # (channel, [att, rate, veil at length])
-        e = np.array([-np.expm1(-f["backscatter"] * length) for f in fits])
-        veil_sd = np.hypot(sd[:, 2] / e, np.array([f["veil_at_length"] * length * (1 - ei) / ei ** 2
-                                                   for f, ei in zip(fits, e)]) * sd[:, 1])
-        gn = {"attenuation": sd[:, 0], "backscatter": sd[:, 1], "veil_at_length": sd[:, 2], "veil": veil_sd}
+        gn = _gauss_newton_spread(fits, length)
         out["spread"] = {k: np.maximum(boot[k], gn[k]).tolist() for k in boot}
-        out["rounds"] = rounds
+    out["rounds"] = rounds
     return out
+
+
+def _bootstrap(refit, pt: torch.Tensor, n: int, rounds: int, seed: int) -> dict:
+    """The standard deviation of ``refit(w)``'s coefficients over ``rounds`` draws of the points
+    with replacement (``w``: each observation's weight, its point's count in the draw; the
+    points, not the observations, are the independent draws)."""
+    gen = torch.Generator().manual_seed(seed)
+    used = torch.unique(pt)
+    draws = {k: [] for k in ("attenuation", "backscatter", "veil", "veil_at_length")}
+    for _ in range(rounds):
+        pick = used[torch.randint(len(used), (len(used),), generator=gen)]
+        count = torch.zeros(n, dtype=torch.float64).index_add_(0, pick, torch.ones(len(pick), dtype=torch.float64))
+        refitted = refit(count[pt])
+        for k in draws:
+            draws[k].append(refitted[k])
+    return {k: np.std(np.asarray(v, np.float64), axis=0, ddof=1) for k, v in draws.items()}
+
+
+def _gauss_newton_spread(fits: list[dict], length: float) -> dict:
+    """Each coefficient's Gauss-Newton standard error from :func:`fit_channel`'s variances."""
+    sd = np.sqrt(np.array([f["variance"] for f in fits]))          # (channel, [att, rate, veil at length])
+    e = np.array([-np.expm1(-f["backscatter"] * length) for f in fits])
+    veil_sd = np.hypot(sd[:, 2] / e, np.array([f["veil_at_length"] * length * (1 - ei) / ei ** 2
+                                               for f, ei in zip(fits, e)]) * sd[:, 1])
+    return {"attenuation": sd[:, 0], "backscatter": sd[:, 1], "veil_at_length": sd[:, 2], "veil": veil_sd}
 
 
 def _collect(fits: list[dict], length: float) -> dict:

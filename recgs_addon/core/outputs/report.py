@@ -247,7 +247,7 @@ def _water_section(medium: dict) -> list[str]:
     if pre:
         lines.append(f"| from the sparse points, before training | {rgb(pre['attenuation'])} | "
                      f"{rgb(pre['backscatter'])} | {rgb(pre['veil'])} |")
-    lines += _water_pinning(medium) + _water_kept(medium)
+    lines += _water_pinning(medium) + _water_under_light(medium) + _water_kept(medium)
     if medium.get("cues"):
         lines += ["", "Where the fit disagrees with what natural waters and seabeds look like (said, not overruled):", ""]
         lines += [f"- {c[0].upper() + c[1:]}." for c in medium["cues"]]
@@ -273,6 +273,22 @@ def _water_pinning(medium: dict) -> list[str]:
             cells = [f"{v:.3f} +- {e:.3f} ({p})" for v, e, p in zip(fit[key], spread[key], pins[key])]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
+
+
+def _water_under_light(medium: dict) -> list[str]:
+    """Whether the sparse points' fit measured the caustics' light (core/model/medium_fit.py)."""
+    under = medium.get("prefit_under_light")
+    if not under or "light_noise" not in under:
+        return []
+    light, noise = under["light_noise"]
+    plain = " / ".join(f"{x:.3f}" for x in under.get("plain_attenuation", []))
+    if under.get("under_light"):
+        return ["", f"The photos hold moving light (caustics): the points' fit measured it, a grey gain on the seabed "
+                    f"from view to view ({light:.2f} log units, {light / max(noise, 1e-9):.0f} times the photos' own "
+                    f"noise), instead of taking it for noise; taken for noise, the attenuation read {plain}."]
+    return ["", f"The photos hold moving light, but it moves the points' colours by {light:.2f} log units, "
+                f"{light / max(noise, 1e-9):.1f} times the photos' own noise: too little to measure the water by, "
+                "so the points' fit takes it for noise."]
 
 
 def _water_kept(medium: dict) -> list[str]:

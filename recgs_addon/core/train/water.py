@@ -64,6 +64,10 @@ KEEP_VEIL = True
 #: The seabed's average true colour, brightest over weakest channel (linear), beyond which the
 #: report says the colour is strongly tinted (a grey-world cue, not a rule).
 GREY_WORLD = 3.0
+#: Observations the fit under moving light uses at most (the light's gain is noise a few
+#: thousand points' views average out; measured on a level survey under light networks: red
+#: attenuation 6 % off from 60,000, 9 % from 12,000).
+LIGHT_OBSERVATIONS = 60_000
 #: Refits of the points' water on points drawn again (core/model/medium_fit.py).
 BOOT_ROUNDS = 8
 #: The colour channels, as the reasons and cues name them.
@@ -138,21 +142,25 @@ def range_profile(obs: dict) -> dict:
 
 
 def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, rounds: int = BOOT_ROUNDS,
-                    device="cpu") -> dict:
+                    device="cpu", moving_light: bool = False) -> dict:
     """Fit the water and each sparse point's true colour to the points' colours in the photos
     at their ranges (core/model/medium_fit.py: robust, each point's colour eliminated, in linear
     light), and the same points without water (one colour each, their median). Returns the
     fitted :class:`Medium` (its attenuation at least 1e-4 a unit of range), the points' true
     colours (sRGB), both fits' mean error and the water's mean effect in 8-bit sRGB
     levels, the coefficients as fitted (``"fit"``: the attenuation of any sign) and with
-    ``rounds`` their spread over refits (``"spread"``)."""
+    ``rounds`` their spread over refits (``"spread"``). ``moving_light``: the photos hold light
+    that moves over the seabed (caustics; core/model/medium_fit.py: the fit under it)."""
     point, rng, colour = obs["point"], obs["range"], obs["colour"]
+    if moving_light:   # the light's noise needs more of them; its fit is the faster
+        max_observations = max(max_observations, LIGHT_OBSERVATIONS)
     if len(point) > max_observations:
         keep = np.sort(np.random.default_rng(1).choice(len(point), max_observations, replace=False))
         point, rng, colour = point[keep], rng[keep], colour[keep]
     n = len(obs["points"])
     seen = torch.from_numpy(colour).float()
-    fit = medium_fit.fit_water(point, n, rng, srgb_to_linear(seen).double().numpy(), length, rounds=rounds)
+    fit = medium_fit.fit_water(point, n, rng, srgb_to_linear(seen).double().numpy(), length, rounds=rounds,
+                               moving_light=moving_light)
     # no water: each point's median colour
     order = np.argsort(point, kind="stable")
     bounds = np.flatnonzero(np.diff(point[order])) + 1
@@ -177,7 +185,8 @@ def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, ro
             "effect_levels": effect, "observations": int(len(pt)), "gain": fit["gain"],
             "fit": {k: fit[k] for k in ("attenuation", "backscatter", "veil", "veil_at_length")},
             "J_mean": np.clip(fit["J"][np.unique(point)], 0.0, 1.0).mean(0).tolist() if len(point) else [],
-            "spread": fit.get("spread")}
+            "spread": fit.get("spread"),
+            "under_light": {k: fit[k] for k in ("under_light", "light_noise", "plain_attenuation") if k in fit} or None}
 
 
 def cues(fit: dict) -> list[str]:
@@ -284,13 +293,16 @@ class MediumMixin:
             return
         _sample_colours(self.data, obs)
         self._unlit(obs)
-        fit = fit_from_points(obs, prof["median_range"], device=self.device)
+        # under caustics the fit measures the light's grey gain instead of taking it for noise
+        moving = bool((getattr(self, "light", None) or {}).get("caustics"))
+        fit = fit_from_points(obs, prof["median_range"], device=self.device, moving_light=moving)
         pins = pinning(fit)
         self.medium_info.update(prefit={k: round(fit[k], 3) if isinstance(fit[k], float) else fit[k]
                                         for k in ("error_plain", "error_water", "effect_levels", "observations",
                                                   "gain")},
                                 prefit_coefficients=fit["medium"].values(), prefit_fit=fit["fit"],
-                                prefit_spread=fit["spread"], pinning=pins, cues=cues(fit))
+                                prefit_spread=fit["spread"], pinning=pins, cues=cues(fit),
+                                prefit_under_light=fit["under_light"])
         shown, why = decide(fit, pins)
         if c.medium == "auto" and not shown:
             self.medium_info["reason"] = why
