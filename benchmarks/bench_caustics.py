@@ -92,8 +92,8 @@ SURVEYS.update({
 # the camera pitched 15 degrees forward: each seabed point is seen from ranges that differ by the
 # field of view only (about x1.3), the range changes mostly across the image and from point to
 # point. A sandy seabed in green coastal water; a reef-like one (60 rocks: relief, texture and
-# occlusion) in green coastal water, in clear ocean water, and in the coastal water with caustic
-# networks.
+# occlusion) in green coastal water, in clear ocean water, in the coastal water with caustic
+# networks, and in the clear water under a softer wave pattern of light.
 LEVEL = DIVE + ["--altitude", "3.0", "--pitch", "15", "--save-depth"]
 REEF = LEVEL + ["--rocks", "60"]
 SURVEYS.update({
@@ -102,6 +102,8 @@ SURVEYS.update({
     "level-reef-clear": REEF + ["--water", "clear", "--seed", "62", "--caustic-strength", "0"],
     "level-reef-networks": REEF + ["--water", "coastal", "--seed", "63", "--caustic-pattern", "voronoi",
                                    "--caustic-strength", "0.9"],
+    "level-reef-clear-waves": REEF + ["--water", "clear", "--seed", "66", "--caustic-pattern", "waves",
+                                      "--caustic-strength", "0.8"],
 })
 # Lawnmower rows that cross each seabed point only two or three times, as most divers and
 # robots shoot: 64 frames in six rows with 65 % side overlap (each point in about six frames of

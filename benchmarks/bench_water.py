@@ -5,7 +5,11 @@
 * **runs**: on ``dive-water`` (green coastal water, ranges about 1.5-5 m, no caustics) plain 3DGS,
   3DGS with the water model, and the oracle (plain 3DGS on the true-colour images); on
   ``dive-water-networks`` (the same water with sharp caustic networks) also RecGS without and
-  with the water; on ``dive-water-clear`` (clear ocean water, another seabed) the first three. Each run gets the same wall-clock limit, two at a time on one thread each.
+  with the water; on ``dive-water-clear`` (clear ocean water, another seabed) the first three; on
+  the surveys flown level at one altitude (``level-*``) the same, with RecGS and the water under
+  light: caustic networks in the coastal water (``level-reef-networks``) and a softer wave
+  pattern in the clear water (``level-reef-clear-waves``). Each run gets the same wall-clock
+  limit, two at a time on one thread each.
   Scores: held-out PSNR of the true-colour render against the true colour (``clean/``), of the
   true-colour photos (``truecolour/``) where the run made them, Gaussians, steps, and the fitted
   coefficients against the generator's.
@@ -70,11 +74,14 @@ RUNS = [
     ("level-reef-networks", "oracle", "oracle", ["--medium", "off"]),
     ("level-reef-networks", "water", "3dgs", ["--medium", "auto"]),
     ("level-reef-networks", "plain", "3dgs", ["--medium", "off"]),
+    ("level-reef-clear-waves", "recgs+water", "recgs", ["--medium", "auto"]),
+    ("level-reef-clear-waves", "oracle", "oracle", ["--medium", "off"]),
+    ("level-reef-clear-waves", "plain", "3dgs", ["--medium", "off"]),
     ("level-water", "water", "3dgs", ["--medium", "auto"]),
     ("level-water", "oracle", "oracle", ["--medium", "off"]),
 ]
 DECISION_SURVEYS = ["dive-water", "dive-water-networks", "dive-water-clear", "level-water", "level-reef-water",
-                    "level-reef-clear", "level-reef-networks", "dive-none", "dive-networks", "sample-none", "networks",
+                    "level-reef-clear", "level-reef-networks", "level-reef-clear-waves", "dive-none", "dive-networks", "sample-none", "networks",
                     "dive-lamp"]
 
 
