@@ -183,6 +183,18 @@ def test_the_fit_under_light_gives_still_light_its_water_too():
     assert _relative_error(f["attenuation"]).max() < 0.05, f["attenuation"]
 
 
+def test_caustics_without_water_read_no_water():
+    """Under caustics in clear air (no water at all), whichever fit is kept reads no attenuation
+    beyond its error bars: the light is not taken for water."""
+    point, rng, y, _ = _observations(n=1500, per=10, light=0.9, noise=0.002, water=None, seed=23)
+    f = medium_fit.fit_water(point, int(point.max()) + 1, rng, y, float(np.median(rng)), rounds=4,
+                             moving_light=True)
+    fit = {"fit": {k: f[k] for k in ("attenuation", "backscatter", "veil", "veil_at_length")}, "spread": f["spread"],
+           "effect_levels": 10.0}
+    shown, why = water.decide(fit, water.pinning(fit))
+    assert not shown, (why, f["attenuation"], f.get("under_light"))
+
+
 def test_the_log_ratio_of_two_channels_holds_no_light():
     """With the true water, each point's log ratio of a channel's seabed part to green's is one
     number whatever the light's gain in each view: the residuals vanish (float64)."""

@@ -61,6 +61,11 @@ REFERENCE = 1
 #: off where the plain fit read 1.5 %; at 2.6 both within 3-7 %; at 5 and above it was the
 #: closer, and the surveys under caustic networks here measure 35-64).
 LIGHT_OVER_NOISE = 3.0
+#: ... and where every channel's veil ends below this share of its bound (the darker colours
+#: seen): a survey under caustics without water drove its veils to 0.90-1.00 of the bound and
+#: read a grey attenuation of 0.3 a unit where there was none; behind water they ended at
+#: 0.19-0.64.
+VEIL_BOUND = 0.9
 #: Observations the refits under moving light use at most (they measure the spread).
 REFIT_OBSERVATIONS = 12_000
 #: Quantile of a channel's observed colours the veil in front of them stays below (high enough
@@ -376,7 +381,7 @@ def fit_under_light(point, n: int, rng, colour_lin, length: float, start: dict, 
     light, noise = lf.light_and_noise(att, v_len, rate)
     return {"attenuation": att.tolist(), "backscatter": rate.tolist(), "veil_at_length": v_len.tolist(),
             "veil": [veil_from(b, v, length) for b, v in zip(rate.tolist(), v_len.tolist())], "J": j.numpy(),
-            "light_noise": [light, noise]}
+            "light_noise": [light, noise], "veil_bound": (v_len / lf.cap).tolist()}
 
 
 def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray, length: float,
@@ -393,8 +398,10 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     ``moving_light``: the photos hold light that moves over the seabed. The fit above then
     starts :func:`fit_under_light`, which is returned where the light's spread from view to
     view is at least :data:`LIGHT_OVER_NOISE` times the photos' own noise (the light is what
-    pins its veil; ``"under_light"`` says whether, ``"light_noise"`` both spreads). Refits then
-    use at most :data:`REFIT_OBSERVATIONS` of the observations (wider spreads, not narrower)."""
+    pins its veil; ``"light_noise"`` both spreads) and no channel's veil ends near its bound
+    (:data:`VEIL_BOUND`, ``"veil_bound"``: the fit found no veil there); ``"under_light"``
+    says whether. Refits then use at most :data:`REFIT_OBSERVATIONS` of the observations
+    (wider spreads, not narrower)."""
     pt = torch.from_numpy(np.asarray(point, np.int64))
     r = torch.from_numpy(np.asarray(rng, np.float64))
     y = torch.from_numpy(np.asarray(colour_lin, np.float64))
@@ -405,8 +412,9 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     light = None
     if moving_light:
         light = fit_under_light(pt, n, r, y, length, out)
-        shown = light["light_noise"][0] >= LIGHT_OVER_NOISE * light["light_noise"][1]
-        out.update({"under_light": shown, "light_noise": light["light_noise"],
+        shown = (light["light_noise"][0] >= LIGHT_OVER_NOISE * light["light_noise"][1]
+                 and max(light["veil_bound"]) < VEIL_BOUND)
+        out.update({"under_light": shown, "light_noise": light["light_noise"], "veil_bound": light["veil_bound"],
                     "plain_attenuation": list(out["attenuation"])})
         if shown:
             out.update(light)
