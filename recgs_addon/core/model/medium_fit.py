@@ -66,7 +66,7 @@ LIGHT_OVER_NOISE = 3.0
 #: read a grey attenuation of 0.3 a unit where there was none; behind water they ended at
 #: 0.19-0.64.
 VEIL_BOUND = 0.9
-#: Observations the refits under moving light use at most (they measure the spread).
+#: Observations the plain fit's refits use at most where the light moved (the fit's spread).
 REFIT_OBSERVATIONS = 12_000
 #: Quantile of a channel's observed colours the veil in front of them stays below (high enough
 #: that the noise of the darkest colours does not pull the bound under the veil).
@@ -400,8 +400,8 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     view is at least :data:`LIGHT_OVER_NOISE` times the photos' own noise (the light is what
     pins its veil; ``"light_noise"`` both spreads) and no channel's veil ends near its bound
     (:data:`VEIL_BOUND`, ``"veil_bound"``: the fit found no veil there); ``"under_light"``
-    says whether. Refits then use at most :data:`REFIT_OBSERVATIONS` of the observations
-    (wider spreads, not narrower)."""
+    says whether. Where the plain fit is kept, its refits use at most
+    :data:`REFIT_OBSERVATIONS` of the observations (wider spreads, not narrower)."""
     pt = torch.from_numpy(np.asarray(point, np.int64))
     r = torch.from_numpy(np.asarray(rng, np.float64))
     y = torch.from_numpy(np.asarray(colour_lin, np.float64))
@@ -426,8 +426,8 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     if rounds <= 0:
         return out
     if light is not None:
-        boot = _bootstrap(lambda w: fit_under_light(pt[sub], n, r[sub], y[sub], length, light, w, tied=0, free=1),
-                          pt[sub], n, rounds, seed)
+        # on every observation the fit used: its error bars decide what training keeps
+        boot = _bootstrap(lambda w: fit_under_light(pt, n, r, y, length, light, w, tied=0, free=1), pt, n, rounds, seed)
         out["spread"] = {k: v.tolist() for k, v in boot.items()}
     else:
         boot = _bootstrap(lambda w: _collect([fit_channel(pt[sub], n, r[sub], y[sub, c], length, w,
