@@ -135,7 +135,9 @@ def decisions(out: Path, surveys: list[str] | None = None) -> None:
         info = tr.medium_info
         row = {"survey": name, "modelled": tr.medium is not None, "seconds": round(time.perf_counter() - t, 1),
                "range_spread": round(info.get("range_spread", 0), 3), "prefit": info.get("prefit"),
-               "reason": info["reason"], "lamp": tr.lamp is not None, "cues": info.get("cues"), "pinning": {k: v for k, v in (info.get("pinning") or {}).items() if k != "z"}}
+               "reason": info["reason"], "lamp": tr.lamp is not None, "cues": info.get("cues"),
+               "pinning": {k: v for k, v in (info.get("pinning") or {}).items() if k != "z"},
+               "under_light": info.get("prefit_under_light")}
         meta = json.loads((scene / "survey.json").read_text()) if (scene / "survey.json").is_file() else {}
         if info.get("prefit_fit") and meta.get("water"):
             truth = meta["water"]

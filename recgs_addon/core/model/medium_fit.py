@@ -66,8 +66,9 @@ LIGHT_OVER_NOISE = 3.0
 #: read a grey attenuation of 0.3 a unit where there was none; behind water they ended at
 #: 0.19-0.64.
 VEIL_BOUND = 0.9
-#: Observations the plain fit's refits use at most where the light moved (the fit's spread).
-REFIT_OBSERVATIONS = 12_000
+#: Where the light moves, the plain fit (the start, and the fit kept where the light is too
+#: weak) and every refit use this many of the observations; the fit under light uses them all.
+LIGHT_SUBSET = 12_000
 #: Quantile of a channel's observed colours the veil in front of them stays below (high enough
 #: that the noise of the darkest colours does not pull the bound under the veil).
 DARKEST = 0.25
@@ -400,15 +401,18 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     view is at least :data:`LIGHT_OVER_NOISE` times the photos' own noise (the light is what
     pins its veil; ``"light_noise"`` both spreads) and no channel's veil ends near its bound
     (:data:`VEIL_BOUND`, ``"veil_bound"``: the fit found no veil there); ``"under_light"``
-    says whether. Where the plain fit is kept, its refits use at most
-    :data:`REFIT_OBSERVATIONS` of the observations (wider spreads, not narrower)."""
+    says whether. The plain fit and the refits then use :data:`LIGHT_SUBSET` of the
+    observations (the fit under light's spread scaled to all of them)."""
     pt = torch.from_numpy(np.asarray(point, np.int64))
     r = torch.from_numpy(np.asarray(rng, np.float64))
     y = torch.from_numpy(np.asarray(colour_lin, np.float64))
-    fits = [fit_channel(pt, n, r, y[:, c], length) for c in range(3)]
+    sub = torch.arange(len(pt))
+    if moving_light and len(pt) > LIGHT_SUBSET:
+        sub = torch.sort(torch.randperm(len(pt), generator=torch.Generator().manual_seed(seed + 1))
+                         [:LIGHT_SUBSET]).values
+    fits = [fit_channel(pt[sub], n, r[sub], y[sub, c], length) for c in range(3)]
     out = _collect(fits, length)
     out["J"] = torch.stack([f["J"] for f in fits], 1).numpy()
-    sub = torch.arange(len(pt))
     light = None
     if moving_light:
         light = fit_under_light(pt, n, r, y, length, out)
@@ -420,15 +424,15 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
             out.update(light)
         else:
             light = None
-        if len(pt) > REFIT_OBSERVATIONS:
-            sub = torch.sort(torch.randperm(len(pt), generator=torch.Generator().manual_seed(seed + 1))
-                             [:REFIT_OBSERVATIONS]).values
     if rounds <= 0:
         return out
     if light is not None:
-        # on every observation the fit used: its error bars decide what training keeps
-        boot = _bootstrap(lambda w: fit_under_light(pt, n, r, y, length, light, w, tied=0, free=1), pt, n, rounds, seed)
-        out["spread"] = {k: v.tolist() for k, v in boot.items()}
+        # refitted on the subset, the spread scaled to every observation the fit used (a
+        # standard error falls as one over the root of the observations): its error bars
+        # decide what training keeps
+        boot = _bootstrap(lambda w: fit_under_light(pt[sub], n, r[sub], y[sub], length, light, w, tied=0, free=1),
+                          pt[sub], n, rounds, seed)
+        out["spread"] = {k: (v * np.sqrt(len(sub) / len(pt))).tolist() for k, v in boot.items()}
     else:
         boot = _bootstrap(lambda w: _collect([fit_channel(pt[sub], n, r[sub], y[sub, c], length, w,
                                                           start=(f["attenuation"], f["backscatter"],
