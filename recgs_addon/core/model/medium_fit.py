@@ -18,8 +18,9 @@ Under light that moves over the seabed (sunlight caustics) every observation's s
 multiplied by a gain of mean 1 that changes from view to view, ``y_k = g_k J_p exp(-attenuation
 r_k) + V(r_k)``, and the fit above is biased for such errors, robust or not: with each point's
 colour projected out, the noise the projection leaves depends on the attenuation (on generated
-surveys under caustics a channel read up to 88 % too high). :func:`fit_under_light` uses the light instead. The gain is
-grey (the same in every channel, in linear light), so the log ratio of two channels' seabed parts
+surveys under caustics a channel read up to 88 % too high). :func:`fit_under_light` uses the
+light instead. The gain is grey (the same in every channel, in linear light), so the log ratio
+of two channels' seabed parts
 ``log((y_c - V_c) / (y_g - V_g)) = log(J_c / J_g) - (attenuation_c - attenuation_g) r`` holds no
 light at all: wrong veils make it change with the gain within a point, which pins the veil, and its
 slope with range is the channels' difference in attenuation. The attenuation common to all
