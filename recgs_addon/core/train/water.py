@@ -310,9 +310,9 @@ class MediumMixin:
         self.medium = fit["medium"]
         self.medium_optimizer = torch.optim.Adam([self.medium.raw], lr=LR_MEDIUM, eps=1e-15)
         self._prefit = {"points": obs["points"], "true": fit["true"]}
-        # where caustics were found they bias the points' fit (26-48 % high under sharp networks),
-        # but trained from every pixel instead the held-out true colour came out 1.3 dB lower:
-        # the render is biased by them as well (benchmarks/RESULTS.md#water-one-altitude)
+        # where caustics were found the points' fit measured the light (6-11 % off where the plain
+        # fit read 26-48 %); trained from every pixel instead, the true colour came out 1.3-1.4 dB
+        # lower (benchmarks/RESULTS.md#water-one-altitude, #water-under-light)
         kept = [p == "pinned" for p in pins["attenuation"]]
         self.medium_info["attenuation_kept"] = kept
         self.medium_info["attenuation_from_points"] = all(kept)
