@@ -54,6 +54,8 @@ LOG_FLOOR = 0.05
 #: ... rounds with the veil's rate tied to the attenuation, then with it searched.
 TIED_ROUNDS = 3
 FREE_ROUNDS = 2
+#: ... Levenberg-Marquardt's steps in each reweighting round of the log ratios' fit.
+LM_STEPS = 30
 #: ... the channel whose log slope gives the attenuation common to all (green: the brightest
 #: under water, and the one the veil's colour and the light's gain are measured against).
 REFERENCE = 1
@@ -248,17 +250,12 @@ def _levenberg_marquardt(residuals, theta: torch.Tensor, iterations: int) -> tor
 
 
 def _point_mean(pt, n, x, w):
-    """Each point's weighted mean of ``x`` (K,) or (K, C) with weights ``w`` of the same shape."""
-    shape = (n,) + tuple(x.shape[1:])
-    num = torch.zeros(shape, dtype=x.dtype).index_add_(0, pt, w * x)
-    return num / torch.zeros(shape, dtype=x.dtype).index_add_(0, pt, w).clamp_min(1e-12)
+    """Each point's weighted mean of ``x`` (K,) with weights ``w``."""
+    return _point_colours(pt, n, torch.ones_like(x), x, w)
 
 
 class _LightFit:
     """:func:`fit_under_light`'s parts over one set of observations (float64)."""
-
-    #: Levenberg-Marquardt's steps in each reweighting round.
-    MAX_ITER = 30
 
     def __init__(self, pt, n, r, y, length, w):
         self.pt, self.n, self.r, self.y, self.length, self.w = pt, n, r, y, length, w
@@ -307,7 +304,7 @@ class _LightFit:
         h = self.w[:, None].expand(-1, 2).clone()
         for _ in range(rounds):
             theta = _levenberg_marquardt(lambda t: (h.sqrt() * self.chroma(*self.unpack(t, rate), h)).reshape(-1),
-                                         theta, self.MAX_ITER)
+                                         theta, LM_STEPS)
             with torch.no_grad():
                 res = self.chroma(*self.unpack(theta, rate), h)
                 scale = torch.stack([torch.tensor(_robust_scale(res[:, j], self.w)) for j in range(2)]).double()
@@ -336,8 +333,9 @@ class _LightFit:
         """The light's spread from view to view (log units: the robust spread of each point's
         seabed part in the reference channel, its range taken out, less the photos' own noise)
         and that noise (the log ratios' spread, one channel's share)."""
-        lz = torch.log(self.seabed(v_len, rate).clamp_min(self.eps)) + att * self.r[:, None]
-        keep = self.w * (self.seabed(v_len, rate) > self.eps).all(1).double()
+        z = self.seabed(v_len, rate)
+        lz = torch.log(z.clamp_min(self.eps)) + att * self.r[:, None]
+        keep = self.w * (z > self.eps).all(1).double()
         grey = lz[:, REFERENCE] - _point_mean(self.pt, self.n, lz[:, REFERENCE], keep)[self.pt]
         ratios = [lz[:, c] - lz[:, REFERENCE] for c in self.others]
         chroma = torch.cat([q - _point_mean(self.pt, self.n, q, keep)[self.pt] for q in ratios])
@@ -354,7 +352,6 @@ class _LightFit:
                 rate = att.clamp(*bounds)
             diff = att[self.others] - att[REFERENCE]
             v_len, diff, rate = self.fit_chroma(v_len, diff, rate, free=k >= tied)
-            v_len, diff, rate = v_len.detach(), diff.detach(), rate.detach()
             ref = self.log_slope(v_len, rate)
             att = torch.empty(3, dtype=torch.float64)
             att[REFERENCE] = ref
@@ -378,8 +375,7 @@ def fit_under_light(point, n: int, rng, colour_lin, length: float, start: dict, 
     with torch.no_grad():   # the colours under the light's mean: least squares with the water fixed
         a = torch.exp(-att * r[:, None])
         z = lf.seabed(v_len, rate)
-        w3 = w[:, None].expand(-1, 3)
-        j = _point_mean(pt, n, a * z, w3) / _point_mean(pt, n, a * a, w3).clamp_min(1e-12)
+        j = torch.stack([_point_colours(pt, n, a[:, c], z[:, c], w) for c in range(3)], 1)
     light, noise = lf.light_and_noise(att, v_len, rate)
     return {"attenuation": att.tolist(), "backscatter": rate.tolist(), "veil_at_length": v_len.tolist(),
             "veil": [veil_from(b, v, length) for b, v in zip(rate.tolist(), v_len.tolist())], "J": j.numpy(),
