@@ -177,6 +177,69 @@ def test_survey_geometry_prefers_points_to_a_short_model_depth():
     assert err.max() < 0.005, err
 
 
+BLOCK = (0.35, 0.85, 0.05, 0.45)   # a block standing on the seabed: x0, x1, y0, y1 (m) ...
+BLOCK_H = 0.35                     # ... and its height, 14 % of the camera's range
+
+
+def relief_frame(cx: float, cy: float):
+    """(photo sRGB, depth, viewmat, K) of a frame above a seabed with :data:`BLOCK` on it
+    (rays marched to the first surface: the block's top and sides hide the sand behind)."""
+    vm, K = camera(cx, cy)
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    dx, dy = (u - W / 2) / F, -(v - H / 2) / F
+    ts = torch.linspace(ALTITUDE - BLOCK_H - 0.01, ALTITUDE, 800).view(-1, 1, 1)
+    x, y, z = cx + ts * dx, cy + ts * dy, ALTITUDE - ts
+    inb = (x >= BLOCK[0]) & (x <= BLOCK[1]) & (y >= BLOCK[2]) & (y <= BLOCK[3])
+    first = torch.argmax((z <= BLOCK_H * inb).int(), 0)
+    t = ts.flatten()[first]
+    hz = ALTITUDE - t
+    photo = linear_to_srgb(albedo(cx + t * dx + 1.3 * hz, cy + t * dy - 0.7 * hz))
+    return photo, t, vm, K
+
+
+def test_relief_layers_keep_a_block_off_the_sand_around_it():
+    """The points' blur spreads a block's top into the sand around it and the sand into its
+    top; the near and far layers, swept, put most of those pixels back on their surface."""
+    frames = [relief_frame(k * 0.15, r * 0.6) for r in range(2) for k in range(8)]
+    rng = np.random.default_rng(3)
+    top = np.c_[rng.uniform(BLOCK[0], BLOCK[1], 12), rng.uniform(BLOCK[2], BLOCK[3], 12), np.full(12, BLOCK_H)]
+    sand = np.c_[rng.uniform(-1.2, 2.3, 546), rng.uniform(-0.8, 1.8, 546)]
+    under = (sand[:, 0] >= BLOCK[0]) & (sand[:, 0] <= BLOCK[1]) & (sand[:, 1] >= BLOCK[2]) & (sand[:, 1] <= BLOCK[3])
+    sand = sand[~under]
+    pts = torch.tensor(np.r_[top, np.c_[sand, np.zeros(len(sand))]], dtype=torch.float32)
+    share = {}
+    for relief in (False, True):
+        views = [G.PassView(ph, torch.full((H, W), float("nan")), torch.zeros(H, W, dtype=torch.bool), vm, K, 0.33 * k)
+                 for k, (ph, _, vm, K) in enumerate(frames)]
+        if relief:
+            G.survey_geometry(views, pts)
+        else:
+            brought, _ = G.prior_geometry(views, pts)
+            G.refine_geometry(views, G.overlap_matrix(views), brought)
+        err = torch.cat([((v.surface - d).abs() / d)[v.covered] for v, (_, d, _, _) in zip(views, frames)])
+        assert float(err.median()) < 0.002
+        share[relief] = float((err > 0.03).float().mean())
+    assert share[False] > 0.03, share              # the blur does miss the block's edges ...
+    assert share[True] < 0.6 * share[False], share  # ... and the layers find most of them
+
+
+def test_sweep_scores_in_a_window_match_the_whole_frame():
+    """Scoring only a window of a frame (where its relief is) gives the whole frame's scores
+    there, but for the correlation windows cut by its edge (to the running sums' rounding)."""
+    views, _ = survey(strength=0.9, rows=2, per_row=8)
+    i = 4
+    nbrs = G.sweep_neighbours(i, views, G.overlap_matrix(views))
+    greys = [G.log_grey(v.photo) for v in views]
+    depths = [views[i].surface * (1 + d) for d in (-0.01, 0.0, 0.01)]
+    full = G._sweep_scores(i, views, nbrs, depths, 2, greys)
+    mask = torch.zeros(H, W, dtype=torch.bool)
+    mask[20:40, 30:70] = True
+    win = G._bounds(mask, 4)
+    assert (win[0].start, win[0].stop, win[1].start, win[1].stop) == (16, 44, 26, 74)
+    part = G._sweep_scores(i, views, nbrs, [d[win] for d in depths], 2, greys, win)
+    assert torch.allclose(part[:, 2:-2, 2:-2], full[:, win[0], win[1]][:, 2:-2, 2:-2], atol=1e-3)
+
+
 def test_pixels_without_a_surface_take_no_part_in_the_calibration():
     """Where no frame knows the surface (no points, no model), the photo's light cannot be
     compared with anything: those pixels neither calibrate the floor nor get an estimate."""

@@ -6,10 +6,11 @@
   refined by a plane sweep (:func:`refine_depth`: relative depth offsets around the prior,
   scored by normalised cross-correlation of log grey images between the frame and its
   neighbours; moving light changes a frame's brightness, which the correlation ignores, the
-  seabed's texture stays), with the model's depth as a second hypothesis where the points miss
-  relief. :func:`survey_geometry` does both for a survey. A model trained on photos with moving
-  light puts Gaussians in front of the seabed to paint each frame's light, so its own depth
-  runs short (benchmarks/RESULTS.md#caustics-passes).
+  seabed's texture stays), with two more hypotheses where the seabed has relief
+  (:func:`relief_layers`: depth spread from only the locally nearest, or furthest, points) and
+  the model's depth where the points miss relief. :func:`survey_geometry` does both for a
+  survey. A model trained on photos with moving light puts Gaussians in front of the seabed to
+  paint each frame's light, so its own depth runs short (benchmarks/RESULTS.md#caustics-passes).
 * :func:`overlap_matrix`: how much of each frame every other frame sees, unoccluded.
 
 Shapes: photos (H, W, 3) float32 sRGB in [0, 1]; depths (H, W) camera-space z (NaN or 0 where
@@ -38,7 +39,7 @@ POINT_SIGMA = 0.45
 POINT_SUPPORT = 0.02
 #: Depth refinement: relative depth offsets tried around the prior (a plane sweep), and the
 #: half-width of the correlation windows (pixels).
-SWEEP = tuple(float(x) for x in np.linspace(-0.015, 0.015, 13))
+SWEEP = tuple(float(x) for x in np.linspace(-0.015, 0.015, 7))
 SWEEP_RADIUS = 2
 #: ... the frames it compares with (most overlap times baseline) and the least correlation a
 #: pixel's best offset needs to count (others take their neighbours' offsets).
@@ -46,6 +47,13 @@ SWEEP_FRAMES = 6
 SWEEP_MIN_SCORE = 0.2
 #: ... and how much better than at the prior a pixel's best correlation must be to move it.
 SWEEP_MIN_GAIN = 0.02
+#: Relief the points' blur flattens (a rock, a box, a wreck's side standing out of the seabed):
+#: the points nearest (furthest) in their neighbourhood, within ``RELIEF_TOL`` (relative) of
+#: its nearest (furthest), spread as the prior is; the neighbourhood reaches ``RELIEF_REACH``
+#: times the points' spacing. Swept by ``LAYER_SWEEP`` around each.
+RELIEF_TOL = 0.03
+RELIEF_REACH = 1.5
+LAYER_SWEEP = (-0.008, 0.0, 0.008)
 #: Offsets swept around the alternative depth (the model's) where the points' may miss relief.
 ALTERNATIVE_SWEEP = tuple(float(x) for x in np.linspace(-0.006, 0.006, 5))
 
@@ -198,15 +206,24 @@ def points_depth(viewmat: torch.Tensor, K: torch.Tensor, height: int, width: int
     """(H, W) depth interpolated from the sparse ``points`` (M, 3) that project into the view:
     the nearest point's inverse depth per pixel, spread by a normalised Gaussian blur whose
     width follows the points' spacing in the image; NaN where no point is near."""
+    got = _scatter_points(viewmat, K, height, width, points)
+    if got is None:
+        return torch.full((height, width), float("nan"), device=points.device)
+    return _spread(*got)
+
+
+def _scatter_points(viewmat, K, height, width, points):
+    """The points that project into the view as images (1, H, W): their inverse depth (nearer
+    points win a pixel) and where they are; and their spacing in pixels. None where fewer than
+    3 do."""
     cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
     z = cam[:, 2]
     zs = z.clamp_min(1e-6)
     u = K[0, 0] * cam[:, 0] / zs + K[0, 2]
     v = K[1, 1] * cam[:, 1] / zs + K[1, 2]
     ok = (z > 1e-6) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-    nan = torch.full((height, width), float("nan"), device=points.device)
     if int(ok.sum()) < 3:
-        return nan
+        return None
     u, v, z = u[ok].long(), v[ok].long(), z[ok]
     idx = v * width + u
     order = torch.argsort(z, descending=True)          # nearer points written last win
@@ -215,11 +232,44 @@ def points_depth(viewmat: torch.Tensor, K: torch.Tensor, height: int, width: int
     inv[idx[order]] = 1.0 / z[order]
     has[idx[order]] = True
     spacing = math.sqrt(height * width / float(has.sum()))
+    return inv.view(1, height, width), has.view(1, height, width), spacing
+
+
+def _spread(inv, has, spacing):
+    """Depth (H, W) from scattered inverse depths: a normalised blur of POINT_SIGMA spacings,
+    NaN where too few points are near."""
     sigma = POINT_SIGMA * spacing
-    inv, has = inv.view(1, height, width), has.view(1, height, width)
     filled = blur(inv, has, sigma)[0]
     support = blur(has.float(), torch.ones_like(has), sigma)[0]
-    return torch.where(support > POINT_SUPPORT / spacing ** 2, 1.0 / filled.clamp_min(1e-9), nan)
+    return torch.where(support > POINT_SUPPORT / spacing ** 2, 1.0 / filled.clamp_min(1e-9),
+                       torch.full_like(filled, float("nan")))
+
+
+def _max_pool(x: torch.Tensor, r: int) -> torch.Tensor:
+    """Maximum over (2r+1)^2 windows of ``x`` (1, H, W), as two passes (rows, then columns)."""
+    x = F.max_pool2d(x.unsqueeze(0), (1, 2 * r + 1), 1, (0, r))
+    return F.max_pool2d(x, (2 * r + 1, 1), 1, (r, 0))[0]
+
+
+def relief_layers(viewmat: torch.Tensor, K: torch.Tensor, height: int, width: int,
+                  points: torch.Tensor) -> list[torch.Tensor]:
+    """Two more depth hypotheses (H, W) where the seabed has relief: each spread from only the
+    points that are the nearest (the furthest) in their neighbourhood (``RELIEF_REACH`` spacings),
+    within ``RELIEF_TOL``. The prior blurs a rock's top into the sand around it; on the rock the
+    near layer is the rock, beside it the far layer is the sand. Empty without points."""
+    got = _scatter_points(viewmat, K, height, width, points)
+    if got is None:
+        return []
+    inv, has, spacing = got
+    r = max(1, int(math.ceil(RELIEF_REACH * spacing)))
+    big = torch.where(has, inv, torch.full_like(inv, -1.0))
+    small = torch.where(has, inv, torch.full_like(inv, float("inf")))
+    near = _max_pool(big, r)          # largest inverse depth: nearest
+    far = -_max_pool(-small, r)
+    out = []
+    for keep in (has & (inv >= near / (1 + RELIEF_TOL)), has & (inv <= far * (1 + RELIEF_TOL))):
+        out.append(_spread(inv * keep, keep, spacing))
+    return out
 
 
 def sweep_neighbours(i: int, views: Sequence[PassView], overlap: np.ndarray, count: int = SWEEP_FRAMES) -> list[int]:
@@ -242,15 +292,20 @@ def log_grey(photo: torch.Tensor) -> torch.Tensor:
 
 
 def _sweep_scores(i: int, views: Sequence[PassView], neighbours: Sequence[int], depths, radius: int,
-                  greys: Sequence[torch.Tensor]) -> torch.Tensor:
+                  greys: Sequence[torch.Tensor], window: Optional[tuple[slice, slice]] = None,
+                  pairs: Optional[list] = None) -> torch.Tensor:
     """(D, H, W) how well the neighbours' photos agree with frame ``i``'s own at each of the
     candidate ``depths`` ((H, W) each): the mean over the neighbours that see the point of the
-    normalised cross-correlation of log grey images over (2 radius + 1)^2 windows."""
+    normalised cross-correlation of log grey images over (2 radius + 1)^2 windows. ``window``:
+    (rows, columns) slices of frame ``i`` to score alone (``depths`` of that size); ``pairs``:
+    ``_pair_rays`` of ``i`` with each neighbour, if already made."""
     vi = views[i]
-    own = greys[i].unsqueeze(0)
+    window = window or (slice(None), slice(None))
+    own = greys[i][window].unsqueeze(0)
     ma = box(own, radius)
     va = (box(own * own, radius) - ma * ma).clamp_min(0)
-    pairs = [_pair_rays(vi, views[j]) for j in neighbours]
+    pairs = pairs if pairs is not None else [_pair_rays(vi, views[j]) for j in neighbours]
+    pairs = [(rays[:, window[0], window[1]], e) for rays, e in pairs]
     others = [greys[j].unsqueeze(0).unsqueeze(0) for j in neighbours]
     scores = []
     for z in depths:
@@ -280,9 +335,18 @@ def _best_offset(s: torch.Tensor, offsets) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.tensor(offsets, dtype=s.dtype, device=s.device)[best] + frac * step, s0
 
 
+def _bounds(mask: torch.Tensor, margin: int) -> tuple[slice, slice]:
+    """(rows, columns) slices around the set pixels of ``mask`` (H, W), ``margin`` pixels wider."""
+    rows = mask.any(1).nonzero().flatten()
+    cols = mask.any(0).nonzero().flatten()
+    h, w = mask.shape
+    return (slice(max(0, int(rows[0]) - margin), min(h, int(rows[-1]) + 1 + margin)),
+            slice(max(0, int(cols[0]) - margin), min(w, int(cols[-1]) + 1 + margin)))
+
+
 def refine_depth(i: int, views: Sequence[PassView], neighbours: Sequence[int], offsets=SWEEP,
                  radius: int = SWEEP_RADIUS, greys: Optional[Sequence[torch.Tensor]] = None,
-                 alternative: Optional[torch.Tensor] = None) -> torch.Tensor:
+                 alternative: Optional[torch.Tensor] = None, layers: Sequence[torch.Tensor] = ()) -> torch.Tensor:
     """Frame ``i``'s surface depth refined by a plane sweep around it: each pixel takes the
     relative offset (from ``offsets``, with a parabola through the best three) at which the
     other frames' photos agree best with its own, by normalised cross-correlation of the
@@ -291,14 +355,17 @@ def refine_depth(i: int, views: Sequence[PassView], neighbours: Sequence[int], o
     clearly better than the prior (``SWEEP_MIN_GAIN``); offsets no frame confirms are filled
     from their neighbours'. ``alternative`` (H, W): another depth (the model's), swept over
     ``ALTERNATIVE_SWEEP`` and taken where it agrees clearly better: relief the sparse points
-    are too few to follow (a rock standing out of the seabed). ``greys``: ``log_grey`` of every
+    are too few to follow (a rock standing out of the seabed). ``layers``: more depths (H, W) (the frame's
+    :func:`relief_layers`), each swept by ``LAYER_SWEEP`` where it differs from the prior and
+    taken where it agrees clearly better. ``greys``: ``log_grey`` of every
     frame, if already made. Returns the refined (H, W) depth."""
     vi = views[i]
     prior = depth_map(vi)
     if not neighbours:
         return vi.surface.float()
     greys = greys if greys is not None else [log_grey(v.photo) for v in views]
-    s = _sweep_scores(i, views, neighbours, [prior * (1 + d) for d in offsets], radius, greys)
+    pairs = [_pair_rays(vi, views[j]) for j in neighbours]
+    s = _sweep_scores(i, views, neighbours, [prior * (1 + d) for d in offsets], radius, greys, pairs=pairs)
     off, s0 = _best_offset(s, offsets)
     # a pixel moves off its prior only where the texture there clearly agrees better elsewhere
     at_prior = s[int(np.argmin(np.abs(np.asarray(offsets))))]
@@ -306,39 +373,61 @@ def refine_depth(i: int, views: Sequence[PassView], neighbours: Sequence[int], o
     off = torch.where(good, off, torch.zeros_like(off))
     good = good | ((at_prior >= SWEEP_MIN_SCORE) & vi.covered)
     depth = prior * (1 + smooth(off.unsqueeze(0), good.unsqueeze(0), 1.5)[0])
+    best = torch.maximum(s0, at_prior)
+    for layer in layers:   # relief: the near and far layers where they agree clearly better
+        lay = torch.nan_to_num(layer.float(), nan=0.0)
+        differs = vi.covered & (lay > 0) & ((lay - prior).abs() > 0.5 * RELIEF_TOL * prior)
+        if not bool(differs.any()):
+            continue
+        win = _bounds(differs, radius + 2)   # relief is seldom all over a frame: score only around it
+        sl = _sweep_scores(i, views, neighbours, [lay[win] * (1 + d) for d in LAYER_SWEEP], radius, greys,
+                           win, pairs)
+        loff, l0 = (torch.zeros_like(lay), torch.full_like(lay, -1.0))
+        loff[win], l0[win] = _best_offset(sl, LAYER_SWEEP)
+        take = differs & (l0 >= SWEEP_MIN_SCORE) & (l0 >= best + SWEEP_MIN_GAIN)
+        take = smooth(take.float().unsqueeze(0), vi.covered.unsqueeze(0), 1.0)[0] > 0.5
+        depth = torch.where(take, lay * (1 + loff), depth)
+        best = torch.where(take, l0, best)
     if alternative is not None:
         alt = torch.nan_to_num(alternative.float(), nan=0.0)
-        sa = _sweep_scores(i, views, neighbours, [alt * (1 + d) for d in ALTERNATIVE_SWEEP], radius, greys)
+        sa = _sweep_scores(i, views, neighbours, [alt * (1 + d) for d in ALTERNATIVE_SWEEP], radius, greys,
+                           pairs=pairs)
         aoff, a0 = _best_offset(sa, ALTERNATIVE_SWEEP)
-        take = (alt > 0) & (a0 >= SWEEP_MIN_SCORE) & (a0 >= torch.maximum(s0, at_prior) + SWEEP_MIN_GAIN)
+        take = (alt > 0) & (a0 >= SWEEP_MIN_SCORE) & (a0 >= best + SWEEP_MIN_GAIN)
         take = smooth(take.float().unsqueeze(0), vi.covered.unsqueeze(0), 1.0)[0] > 0.5
         depth = torch.where(take, alt * (1 + aoff), depth)
     return torch.where(vi.covered, depth, vi.surface.float())
 
 
-def prior_geometry(views: Sequence[PassView], points: Optional[torch.Tensor]) -> list[torch.Tensor]:
+def prior_geometry(views: Sequence[PassView], points: Optional[torch.Tensor]) -> tuple[list, list]:
     """Set every frame's ``surface`` from the survey's sparse ``points`` (M, 3) where they are
-    dense enough (the depth the views bring, the model's, elsewhere); returns the depths the
-    views brought (NaN where they covered nothing), for :func:`refine_geometry`."""
+    dense enough (the depth the views bring, the model's, elsewhere); returns, for
+    :func:`refine_geometry`, the depths the views brought (NaN where they covered nothing) and
+    each frame's :func:`relief_layers`."""
     brought = [torch.where(v.covered, v.surface.float(), torch.full_like(v.surface.float(), float("nan")))
                for v in views]
+    layers: list = []
     if points is not None and len(points):
         for v in views:
             h, w = v.surface.shape
-            d = points_depth(v.viewmat, v.K, h, w, points.to(v.viewmat.device, v.viewmat.dtype))
+            pts = points.to(v.viewmat.device, v.viewmat.dtype)
+            d = points_depth(v.viewmat, v.K, h, w, pts)
+            layers.append(relief_layers(v.viewmat, v.K, h, w, pts))
             ok = torch.isfinite(d)
             v.surface = torch.where(ok, d, v.surface.float())
             v.covered = v.covered | ok
-    return brought
+    return brought, layers
 
 
 def refine_geometry(views: Sequence[PassView], overlap: np.ndarray,
-                    alternatives: Optional[Sequence[torch.Tensor]] = None) -> None:
+                    alternatives: Optional[Sequence[torch.Tensor]] = None,
+                    layers: Optional[Sequence[Sequence[torch.Tensor]]] = None) -> None:
     """Refine every frame's ``surface`` by the plane sweep (:func:`refine_depth`), with the
-    depths ``alternatives`` (the model's) as the other hypothesis."""
+    depths ``alternatives`` (the model's) and each frame's relief ``layers`` as other hypotheses."""
     greys = [log_grey(v.photo) for v in views]
     refined = [refine_depth(i, views, sweep_neighbours(i, views, overlap), greys=greys,
-                            alternative=None if alternatives is None else alternatives[i])
+                            alternative=None if alternatives is None else alternatives[i],
+                            layers=layers[i] if layers else ())
                for i in range(len(views))]
     for v, d in zip(views, refined):
         v.surface = d
@@ -351,8 +440,8 @@ def survey_geometry(views: Sequence[PassView], points: Optional[torch.Tensor], r
     overlap matrix. A model trained on photos with moving light puts Gaussians in front of the
     seabed to paint each frame's light, so its depth runs short (a median of 3 % on a dive
     survey, against 0.25 % from the points and 0.09 % refined: benchmarks/RESULTS.md)."""
-    brought = prior_geometry(views, points)
+    brought, layers = prior_geometry(views, points)
     overlap = overlap_matrix(views)
     if refine:
-        refine_geometry(views, overlap, brought)
+        refine_geometry(views, overlap, brought, layers)
     return overlap
