@@ -272,13 +272,20 @@ def relief_layers(viewmat: torch.Tensor, K: torch.Tensor, height: int, width: in
     return out
 
 
-def sweep_neighbours(i: int, views: Sequence[PassView], overlap: np.ndarray, count: int = SWEEP_FRAMES) -> list[int]:
+def camera_height(views: Sequence[PassView]) -> float:
+    """The median over the frames of their median surface depth (NaN where none is known)."""
+    return float(np.nanmedian([float(v.surface.float().nanmedian()) for v in views]))
+
+
+def sweep_neighbours(i: int, views: Sequence[PassView], overlap: np.ndarray, count: int = SWEEP_FRAMES,
+                     height: Optional[float] = None) -> list[int]:
     """The frames a depth refinement of frame ``i`` compares with: those that see most of it
     from furthest away (overlap times baseline, the baseline capped at the median camera
-    height: beyond it parallax adds nothing the overlap does not lose)."""
+    height, :func:`camera_height` unless given: beyond it parallax adds nothing the overlap
+    does not lose)."""
     centres = torch.stack([-(v.viewmat[:3, :3].T @ v.viewmat[:3, 3]) for v in views])
     base = (centres - centres[i]).norm(dim=1).cpu().numpy()
-    height = float(np.nanmedian([float(v.surface.float().nanmedian()) for v in views]))
+    height = camera_height(views) if height is None else height
     score = overlap[i] * np.minimum(base, height if np.isfinite(height) else base.max())
     score[i] = -1.0
     order = [int(j) for j in np.argsort(-score) if score[j] > 0]
@@ -322,9 +329,8 @@ def _sweep_scores(i: int, views: Sequence[PassView], neighbours: Sequence[int], 
 def _best_offset(s: torch.Tensor, offsets) -> tuple[torch.Tensor, torch.Tensor]:
     """(offset (H, W), its score) at each pixel's best of ``s`` (D, H, W), refined by a parabola
     through the best three."""
-    best = s.argmax(0)
+    s0, best = s.max(0)
     n = len(offsets)
-    s0 = s.gather(0, best.unsqueeze(0))[0]
     sm = s.gather(0, (best - 1).clamp(0, n - 1).unsqueeze(0))[0]
     sp = s.gather(0, (best + 1).clamp(0, n - 1).unsqueeze(0))[0]
     den = sm - 2 * s0 + sp
@@ -425,7 +431,8 @@ def refine_geometry(views: Sequence[PassView], overlap: np.ndarray,
     """Refine every frame's ``surface`` by the plane sweep (:func:`refine_depth`), with the
     depths ``alternatives`` (the model's) and each frame's relief ``layers`` as other hypotheses."""
     greys = [log_grey(v.photo) for v in views]
-    refined = [refine_depth(i, views, sweep_neighbours(i, views, overlap), greys=greys,
+    height = camera_height(views)   # once: the frames' depths change only when all are refined
+    refined = [refine_depth(i, views, sweep_neighbours(i, views, overlap, height=height), greys=greys,
                             alternative=None if alternatives is None else alternatives[i],
                             layers=layers[i] if layers else ())
                for i in range(len(views))]
