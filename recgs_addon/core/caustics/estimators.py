@@ -213,7 +213,7 @@ class Estimates:
             views.append(geometry.PassView(photo, out.depth / out.alpha.clamp_min(1e-6), out.alpha > 0.5,
                                          viewmat, K, times.get(cam.name)))
         pts = torch.as_tensor(data.scene.points, dtype=torch.float32, device=tr.device)
-        brought, layers = geometry.prior_geometry(views, pts)
+        brought = geometry.prior_geometry(views, pts)
         lit = self._even_the_light(views, ids)
         overlap = geometry.overlap_matrix(views)
         pos = {i: n for n, i in enumerate(ids)}
@@ -226,7 +226,7 @@ class Estimates:
             self.pass_info = {"seconds": round(time.perf_counter() - t, 2),
                               **{k: v for k, v in light.items() if k != "correlation_s"}}
             return {"estimates": None, "light": light}
-        geometry.refine_geometry(views, overlap, brought, layers)
+        geometry.refine_geometry(views, overlap, brought, pts)
         settings = passes.settings_for(light, statistic=self.ccfg.pass_statistic, min_passes=self.ccfg.pass_min)
         # with the water modelled, the frames' colours are compared at each frame's own range
         est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train, water=water)

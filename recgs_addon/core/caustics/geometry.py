@@ -405,37 +405,37 @@ def refine_depth(i: int, views: Sequence[PassView], neighbours: Sequence[int], o
     return torch.where(vi.covered, depth, vi.surface.float())
 
 
-def prior_geometry(views: Sequence[PassView], points: Optional[torch.Tensor]) -> tuple[list, list]:
+def prior_geometry(views: Sequence[PassView], points: Optional[torch.Tensor]) -> list[torch.Tensor]:
     """Set every frame's ``surface`` from the survey's sparse ``points`` (M, 3) where they are
-    dense enough (the depth the views bring, the model's, elsewhere); returns, for
-    :func:`refine_geometry`, the depths the views brought (NaN where they covered nothing) and
-    each frame's :func:`relief_layers`."""
+    dense enough (the depth the views bring, the model's, elsewhere); returns the depths the
+    views brought (NaN where they covered nothing), for :func:`refine_geometry`."""
     brought = [torch.where(v.covered, v.surface.float(), torch.full_like(v.surface.float(), float("nan")))
                for v in views]
-    layers: list = []
     if points is not None and len(points):
         for v in views:
             h, w = v.surface.shape
-            pts = points.to(v.viewmat.device, v.viewmat.dtype)
-            d = points_depth(v.viewmat, v.K, h, w, pts)
-            layers.append(relief_layers(v.viewmat, v.K, h, w, pts))
+            d = points_depth(v.viewmat, v.K, h, w, points.to(v.viewmat.device, v.viewmat.dtype))
             ok = torch.isfinite(d)
             v.surface = torch.where(ok, d, v.surface.float())
             v.covered = v.covered | ok
-    return brought, layers
+    return brought
 
 
 def refine_geometry(views: Sequence[PassView], overlap: np.ndarray,
                     alternatives: Optional[Sequence[torch.Tensor]] = None,
-                    layers: Optional[Sequence[Sequence[torch.Tensor]]] = None) -> None:
+                    points: Optional[torch.Tensor] = None) -> None:
     """Refine every frame's ``surface`` by the plane sweep (:func:`refine_depth`), with the
-    depths ``alternatives`` (the model's) and each frame's relief ``layers`` as other hypotheses."""
+    depths ``alternatives`` (the model's) and, from the sparse ``points``, each frame's
+    :func:`relief_layers` as other hypotheses."""
     greys = [log_grey(v.photo) for v in views]
     height = camera_height(views)   # once: the frames' depths change only when all are refined
-    refined = [refine_depth(i, views, sweep_neighbours(i, views, overlap, height=height), greys=greys,
-                            alternative=None if alternatives is None else alternatives[i],
-                            layers=layers[i] if layers else ())
-               for i in range(len(views))]
+    refined = []
+    for i, v in enumerate(views):
+        h, w = v.surface.shape
+        layers = relief_layers(v.viewmat, v.K, h, w, points.to(v.viewmat.device, v.viewmat.dtype)) \
+            if points is not None and len(points) else []
+        refined.append(refine_depth(i, views, sweep_neighbours(i, views, overlap, height=height), greys=greys,
+                                    alternative=None if alternatives is None else alternatives[i], layers=layers))
     for v, d in zip(views, refined):
         v.surface = d
 
@@ -447,8 +447,8 @@ def survey_geometry(views: Sequence[PassView], points: Optional[torch.Tensor], r
     overlap matrix. A model trained on photos with moving light puts Gaussians in front of the
     seabed to paint each frame's light, so its depth runs short (a median of 3 % on a dive
     survey, against 0.25 % from the points and 0.09 % refined: benchmarks/RESULTS.md)."""
-    brought, layers = prior_geometry(views, points)
+    brought = prior_geometry(views, points)
     overlap = overlap_matrix(views)
     if refine:
-        refine_geometry(views, overlap, brought, layers)
+        refine_geometry(views, overlap, brought, points)
     return overlap
