@@ -37,8 +37,10 @@ OVERLAP_GRID = 24
 POINT_SIGMA = 0.45
 #: ... and the least density of points (relative to the mean) near a pixel that gives it a depth.
 POINT_SUPPORT = 0.02
-#: Depth refinement: relative depth offsets tried around the prior (a plane sweep), and the
-#: half-width of the correlation windows (pixels).
+#: Depth refinement: relative depth offsets tried around the prior (a plane sweep; 0.5 % apart,
+#: the parabola through the best three between them: 13 gave the same targets at twice the
+#: cost, benchmarks/RESULTS.md#relief-geometry), and the half-width of the correlation windows
+#: (pixels).
 SWEEP = tuple(float(x) for x in np.linspace(-0.015, 0.015, 7))
 SWEEP_RADIUS = 2
 #: ... the frames it compares with (most overlap times baseline) and the least correlation a
