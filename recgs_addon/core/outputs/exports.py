@@ -48,23 +48,31 @@ def write_outputs(method, out: Path) -> dict:
         write_image(out / "renders" / f"{stem}.exr", rgb)
     result: dict = {}
     caustic = bool(data.train_ids) and method.decaustic_image(data.train_ids[0]) is not None
-    captured, cleaned = [], []
+    if trainer.forms_image:
+        _write_models(trainer, out)
+    captured, cleaned, true_scores = [], [], []
     for i in data.train_ids:
         image = data.view(i, 1)[1]
         gt = data.gt_view(i)
+        stem = _stem(cams[i].name)
         if gt is not None:
             captured.append(psnr(image, gt))
-        if not caustic:
-            continue
-        free = method.decaustic_image(i)
-        stem = _stem(cams[i].name)
-        write_image(out / "caustic" / f"{stem}.exr", (image - free).cpu().numpy())
-        write_image(out / "decaustic" / f"{stem}.png", free.cpu().numpy())
-        write_image(out / "decaustic" / f"{stem}.exr", free.cpu().numpy())
-        if gt is not None:
-            cleaned.append(psnr(torch.clamp(free, 0, 1), gt))
-    if trainer.forms_image:
-        result.update(write_true_colour(method, out))
+        # made once a view: a caustic-free image may render the view and estimate its light
+        free = method.decaustic_image(i) if caustic else None
+        if free is not None:
+            write_image(out / "caustic" / f"{stem}.exr", (image - free).cpu().numpy())
+            write_image(out / "decaustic" / f"{stem}.png", free.cpu().numpy())
+            write_image(out / "decaustic" / f"{stem}.exr", free.cpu().numpy())
+            if gt is not None:
+                cleaned.append(psnr(torch.clamp(free, 0, 1), gt))
+        if trainer.forms_image:
+            true = true_colour_photo(trainer, i, image if free is None else free).clamp(0, 1)
+            write_image(out / "truecolour" / f"{stem}.png", true.cpu().numpy())
+            write_image(out / "truecolour" / f"{stem}.exr", true.cpu().numpy())
+            if gt is not None:
+                true_scores.append(psnr(true, gt))
+    if true_scores:
+        result["psnr_truecolour_gt"] = float(np.mean(true_scores))
     if captured:
         result["psnr_captured_gt"] = float(np.mean(captured))
     if cleaned:
@@ -89,11 +97,8 @@ def true_colour_photo(trainer, index: int, image: torch.Tensor) -> torch.Tensor:
     return linear_to_srgb(torch.from_numpy(true.astype(np.float32)))
 
 
-def write_true_colour(method, out: Path) -> dict:
-    """``medium.json`` and ``truecolour/`` (see the module); returns their PSNR against ground
-    truth where the survey has it."""
-    trainer = method.trainer
-    data = trainer.data
+def _write_models(trainer, out: Path) -> None:
+    """``medium.json`` and ``lamp.json`` (see the module), for the models the run kept."""
     if trainer.medium is not None:
         with atomic_path(out / "medium.json", "medium") as tmp:
             tmp.write_text(json.dumps({
@@ -107,15 +112,3 @@ def write_true_colour(method, out: Path) -> dict:
                          "linear light; x, y the pixel's position from the principal point in half-widths of the "
                          "image, terms (i, j) with 1 <= i + j <= 4 in the order (1,0), (0,1), (2,0), (1,1), (0,2), ...; "
                          "r the range along the ray in scene units", **trainer.lamp_summary()}, indent=2))
-    scores = []
-    for i in data.train_ids:
-        free = method.decaustic_image(i)
-        image = data.view(i, 1)[1] if free is None else free
-        true = true_colour_photo(trainer, i, image).clamp(0, 1)
-        stem = _stem(data.scene.cameras[i].name)
-        write_image(out / "truecolour" / f"{stem}.png", true.cpu().numpy())
-        write_image(out / "truecolour" / f"{stem}.exr", true.cpu().numpy())
-        gt = data.gt_view(i)
-        if gt is not None:
-            scores.append(psnr(true, gt))
-    return {"psnr_truecolour_gt": float(np.mean(scores))} if scores else {}
