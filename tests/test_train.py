@@ -904,16 +904,31 @@ def test_resumed_clock_goes_on_from_the_saved_time(small_scene):
 
 def test_time_limit_keeps_room_for_the_finishing(small_scene):
     """The renders a job makes after training (set by the job) come out of the time limit, at
-    the latest measured render time and at most a quarter of the limit."""
+    the latest measured render time, and the images it writes, at the measured write time; at
+    most a quarter of the limit."""
     tr = make_trainer(small_scene, tiny_cfg(iterations=10 ** 6, max_minutes=0.05))   # 3 s
     assert tr.finishing_reserve() == 0.0
     tr.evaluate()                          # renders the held-out views: a render time
     tr.finishing_renders = lambda: 4
     assert 0.0 < tr.finishing_reserve() < 1.0
+    renders_only = tr.finishing_reserve()
+    tr.finishing_writes, tr.write_s = (lambda: 10), 0.02   # and the images it writes: 10 at 20 ms
+    assert tr.finishing_reserve() == pytest.approx(renders_only + 0.2)
     tr.finishing_renders = lambda: 10 ** 6
     assert tr.finishing_reserve() == pytest.approx(0.75)
     assert tr.train_until() == "time limit"
     assert 2.25 <= tr.elapsed < 3.0
+
+
+def test_a_job_measures_what_an_output_image_takes_to_write(small_scene, tmp_path):
+    """The job times a training photo written as PNG and EXR into its output folder, for the
+    time limit's reserve, and leaves nothing there."""
+    from recgs_addon.commands.train import _write_seconds
+
+    tr = make_trainer(small_scene, tiny_cfg())
+    seconds = _write_seconds(tmp_path, tr)
+    assert 0.0 < seconds < 5.0
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_progress_says_the_share_done_from_the_eta_or_the_time_limit(small_scene):

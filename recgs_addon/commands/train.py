@@ -161,6 +161,9 @@ def run_train(args) -> int:
         trainer.finishing_renders = lambda: (2 * n_test + 2 * n_train + n_test + method.finishing_renders()
                                              + (n_train if trainer.forms_image else 0)
                                              + (DECIDE_VIEWS if trainer.medium is not None else 0))
+        # and the images it writes: held-out renders, the method's, the true-colour photos
+        trainer.finishing_writes = lambda: (2 * n_test + method.finishing_images()
+                                            + (2 * n_train if trainer.forms_image else 0))
     except RecGSError as exc:
         return fail(str(exc))
 
@@ -175,6 +178,25 @@ def run_train(args) -> int:
         return _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator, plan, t_command)
     finally:
         lock.__exit__(None, None, None)
+
+
+def _write_seconds(out: Path, trainer) -> float:
+    """Seconds one output image takes to write here: a training photo written as PNG and as
+    EXR into ``out`` (then removed), the mean of the two. Writing is what the finishing does
+    most of after rendering (five files a training view with the water and caustics)."""
+    from ..core.io.images import write_image
+
+    image = trainer.data.view(trainer.data.train_ids[0], 1)[1].cpu().numpy() if trainer.data.train_ids else None
+    if image is None:
+        return 0.0
+    t = time.perf_counter()
+    for ext in ("png", "exr"):
+        probe = out / f".write-probe.{ext}"
+        try:
+            write_image(probe, image)
+        finally:
+            probe.unlink(missing_ok=True)
+    return (time.perf_counter() - t) / 2
 
 
 def _reading_progress(t0: float):
@@ -225,6 +247,7 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
     from ..core.train.checkpoint import save_checkpoint
 
     stop = StopSignals().install()
+    trainer.write_s = _write_seconds(out, trainer)
 
     def checkpoint(tr) -> None:
         save_checkpoint(ckpt_path, method.state_dict())

@@ -43,6 +43,12 @@ class Method:
         caustic-free photos), for the time limit's reserve (``Trainer.finishing_reserve``)."""
         return 0
 
+    def finishing_images(self) -> int:
+        """Images the method writes after training, for the reserve: a caustic map and the
+        caustic-free photo (PNG and EXR) of every training view where it makes them."""
+        makes = type(self).decaustic_image is not Method.decaustic_image
+        return 3 * len(self.data.train_ids) if makes else 0
+
     def state_bytes(self) -> int:
         """Memory the method's per-view state (caustic maps, targets) takes at its largest."""
         return 0

@@ -38,11 +38,13 @@ class ProgressMixin:
 
     def finishing_reserve(self) -> float:
         """Seconds the time limit keeps for what follows training: ``finishing_renders()`` at the
-        latest render time measured (a held-out evaluation measures it), at most a quarter of
-        the limit. The whole job then ends near its limit, finishing included."""
+        latest render time measured (a held-out evaluation measures it) and ``finishing_writes()``
+        output images at ``write_s`` each (the job measures it), at most a quarter of the
+        limit. The whole job then ends near its limit, finishing included."""
         if self._render_s is None or self.time_limit_s is None:
             return 0.0
-        return min(self.finishing_renders() * self._render_s, 0.25 * self.time_limit_s)
+        return min(self.finishing_renders() * self._render_s + self.finishing_writes() * self.write_s,
+                   0.25 * self.time_limit_s)
 
     def start_clock(self, origin: Optional[float] = None) -> None:
         """Count the run's time from ``origin`` (a ``time.perf_counter()`` reading, default now;

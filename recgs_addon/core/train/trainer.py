@@ -103,6 +103,10 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin, LampMix
         #: time limit leaves room for them (:meth:`finishing_reserve`)
         self.finishing_renders: Callable[[], int] = lambda: 0
         self._render_s: Optional[float] = None   # seconds a full-resolution render took, lately
+        #: ... and the output images written then, at ``write_s`` seconds each (one image of the
+        #: training size, as the job measured it; 0 until then)
+        self.finishing_writes: Callable[[], int] = lambda: 0
+        self.write_s = 0.0
         self.order: list[int] = []
         self.history: list[dict] = []
         self.budget = cfg.budget  # may be frozen by "auto"
