@@ -352,6 +352,22 @@ def _bounds(mask: torch.Tensor, margin: int) -> tuple[slice, slice]:
             slice(max(0, int(cols[0]) - margin), min(w, int(cols[-1]) + 1 + margin)))
 
 
+def _hypothesis(i: int, views: Sequence[PassView], neighbours: Sequence[int], base: torch.Tensor, offsets,
+                eligible: torch.Tensor, best: torch.Tensor, radius: int, greys, pairs,
+                window: Optional[tuple[slice, slice]] = None):
+    """Another depth ``base`` (H, W) for frame ``i``, swept by ``offsets`` (in ``window`` only,
+    if given): (its best depth, that depth's score, where to take it: ``eligible`` pixels whose
+    score is at least ``SWEEP_MIN_SCORE`` and clearly better than ``best``, the choice smoothed
+    so that lone pixels do not switch)."""
+    win = window or (slice(None), slice(None))
+    s = _sweep_scores(i, views, neighbours, [base[win] * (1 + d) for d in offsets], radius, greys, window, pairs)
+    off, score = torch.zeros_like(base), torch.full_like(base, -1.0)
+    off[win], score[win] = _best_offset(s, offsets)
+    take = eligible & (score >= SWEEP_MIN_SCORE) & (score >= best + SWEEP_MIN_GAIN)
+    take = smooth(take.float().unsqueeze(0), views[i].covered.unsqueeze(0), 1.0)[0] > 0.5
+    return base * (1 + off), score, take
+
+
 def refine_depth(i: int, views: Sequence[PassView], neighbours: Sequence[int], offsets=SWEEP,
                  radius: int = SWEEP_RADIUS, greys: Optional[Sequence[torch.Tensor]] = None,
                  alternative: Optional[torch.Tensor] = None, layers: Sequence[torch.Tensor] = ()) -> torch.Tensor:
@@ -387,23 +403,15 @@ def refine_depth(i: int, views: Sequence[PassView], neighbours: Sequence[int], o
         differs = vi.covered & (lay > 0) & ((lay - prior).abs() > 0.5 * RELIEF_TOL * prior)
         if not bool(differs.any()):
             continue
-        win = _bounds(differs, radius + 2)   # relief is seldom all over a frame: score only around it
-        sl = _sweep_scores(i, views, neighbours, [lay[win] * (1 + d) for d in LAYER_SWEEP], radius, greys,
-                           win, pairs)
-        loff, l0 = (torch.zeros_like(lay), torch.full_like(lay, -1.0))
-        loff[win], l0[win] = _best_offset(sl, LAYER_SWEEP)
-        take = differs & (l0 >= SWEEP_MIN_SCORE) & (l0 >= best + SWEEP_MIN_GAIN)
-        take = smooth(take.float().unsqueeze(0), vi.covered.unsqueeze(0), 1.0)[0] > 0.5
-        depth = torch.where(take, lay * (1 + loff), depth)
-        best = torch.where(take, l0, best)
+        # relief is seldom all over a frame: scored only around it
+        cand, score, take = _hypothesis(i, views, neighbours, lay, LAYER_SWEEP, differs, best, radius, greys,
+                                        pairs, _bounds(differs, radius + 2))
+        depth = torch.where(take, cand, depth)
+        best = torch.where(take, score, best)
     if alternative is not None:
         alt = torch.nan_to_num(alternative.float(), nan=0.0)
-        sa = _sweep_scores(i, views, neighbours, [alt * (1 + d) for d in ALTERNATIVE_SWEEP], radius, greys,
-                           pairs=pairs)
-        aoff, a0 = _best_offset(sa, ALTERNATIVE_SWEEP)
-        take = (alt > 0) & (a0 >= SWEEP_MIN_SCORE) & (a0 >= best + SWEEP_MIN_GAIN)
-        take = smooth(take.float().unsqueeze(0), vi.covered.unsqueeze(0), 1.0)[0] > 0.5
-        depth = torch.where(take, alt * (1 + aoff), depth)
+        cand, _, take = _hypothesis(i, views, neighbours, alt, ALTERNATIVE_SWEEP, alt > 0, best, radius, greys, pairs)
+        depth = torch.where(take, cand, depth)
     return torch.where(vi.covered, depth, vi.surface.float())
 
 
