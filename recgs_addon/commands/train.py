@@ -186,9 +186,9 @@ def _write_seconds(out: Path, trainer) -> float:
     most of after rendering (five files a training view with the water and caustics)."""
     from ..core.io.images import write_image
 
-    image = trainer.data.view(trainer.data.train_ids[0], 1)[1].cpu().numpy() if trainer.data.train_ids else None
-    if image is None:
+    if not trainer.data.train_ids:
         return 0.0
+    image = trainer.data.view(trainer.data.train_ids[0], 1)[1].cpu().numpy()
     t = time.perf_counter()
     for ext in ("png", "exr"):
         probe = out / f".write-probe.{ext}"

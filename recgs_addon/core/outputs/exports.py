@@ -47,7 +47,6 @@ def write_outputs(method, out: Path) -> dict:
         write_image(out / "renders" / f"{stem}.png", rgb)
         write_image(out / "renders" / f"{stem}.exr", rgb)
     result: dict = {}
-    caustic = bool(data.train_ids) and method.decaustic_image(data.train_ids[0]) is not None
     if trainer.forms_image:
         _write_models(trainer, out)
     captured, cleaned, true_scores = [], [], []
@@ -57,8 +56,9 @@ def write_outputs(method, out: Path) -> dict:
         stem = _stem(cams[i].name)
         if gt is not None:
             captured.append(psnr(image, gt))
-        # made once a view: a caustic-free image may render the view and estimate its light
-        free = method.decaustic_image(i) if caustic else None
+        # made once a view (None where the method makes none): it may render the view and
+        # estimate its light
+        free = method.decaustic_image(i)
         if free is not None:
             write_image(out / "caustic" / f"{stem}.exr", (image - free).cpu().numpy())
             write_image(out / "decaustic" / f"{stem}.png", free.cpu().numpy())
