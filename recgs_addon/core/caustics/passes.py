@@ -149,9 +149,10 @@ def _centre(v: PassView) -> torch.Tensor:
     return -(R.T @ t)
 
 
-def _water_frame(vi: PassView, water: dict):
-    """Frame ``vi``'s pixels' world points and ranges, and the water's coefficients as tensors."""
-    pts = backproject(depth_map(vi), vi.viewmat, vi.K)
+def _water_frame(vi: PassView, water: dict, pts: Optional[torch.Tensor] = None):
+    """Frame ``vi``'s pixels' world points and ranges, and the water's coefficients as tensors
+    (``pts``: the points, if already made)."""
+    pts = backproject(depth_map(vi), vi.viewmat, vi.K) if pts is None else pts
     terms = tuple(torch.as_tensor(water[k], dtype=pts.dtype, device=pts.device)
                   for k in ("attenuation", "backscatter", "veil"))
     return pts, torch.linalg.vector_norm(pts - _centre(vi), dim=-1).unsqueeze(-1), terms
@@ -180,8 +181,9 @@ def gather(i: int, views: Sequence[PassView], groups: list[list[int]], depth_tol
     samples, valid = [], []
     passes = torch.zeros(vi.surface.shape, dtype=torch.int64, device=vi.surface.device)
     veil_i = None
+    pts = backproject(depth_map(vi), vi.viewmat, vi.K)   # once for every frame warped into i
     if water is not None:
-        pts, r_i, terms = _water_frame(vi, water)
+        pts, r_i, terms = _water_frame(vi, water, pts)
         veil_i = terms[2] * (1 - torch.exp(-terms[1] * r_i))
     for g in groups:
         seen = torch.zeros_like(vi.covered)
@@ -189,7 +191,7 @@ def gather(i: int, views: Sequence[PassView], groups: list[list[int]], depth_tol
             if j == i:
                 sample, ok = vi.photo, vi.covered
             else:
-                sample, ok = warp(vi, views[j], depth_tol)
+                sample, ok = warp(vi, views[j], depth_tol, points=pts)
             lin = _linear(sample)
             samples.append(lin if water is None else _direct_at(lin, pts, r_i, views[j], terms))
             valid.append(ok)
