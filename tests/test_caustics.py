@@ -202,6 +202,37 @@ def test_passes_estimator_removes_the_caustics_and_judges_by_its_references(caus
     assert cleaned > captured + 0.5, (captured, cleaned)   # +0.8 dB measured (its light is not a seabed's)
 
 
+def test_passes_rounds_render_only_the_views_that_follow_the_model(caustic_scene, monkeypatch):
+    """A training view whose target the passes make on (nearly) all its pixels does not depend on
+    the model: later rounds keep its estimate rather than render the view again; the others are
+    estimated against the model as it is now."""
+    from recgs_addon.core.caustics import estimators
+
+    m = make(caustic_scene, estimator="passes", iterations=450, warmup=300, recurrence_steps=100)
+    m.run()
+    shares = m.geometry["shares"]
+    assert set(shares) == set(m.data.train_ids) and all(0 <= x <= 1 for x in shares.values())
+    cut = float(np.median(list(shares.values())))
+    free = {i for i, x in shares.items() if x >= cut}
+    assert free and free != set(m.data.train_ids), shares
+    monkeypatch.setattr(estimators, "MODEL_FREE_SHARE", cut)
+    rendered = []
+    render = m.trainer.render_view
+    monkeypatch.setattr(m.trainer, "render_view", lambda i, *a, **k: rendered.append(i) or render(i, *a, **k))
+    before = {i: x.clone() for i, x in m.maps.items()}
+    new = m._estimates(m.data.train_ids)
+    assert set(new) == set(m.data.train_ids)
+    assert sorted(rendered) == sorted(set(m.data.train_ids) - free)
+    assert all(torch.equal(new[i].half(), before[i]) for i in free)
+    # the finishing renders the others only, and the time limit's reserve counts those
+    assert m.finishing_renders() == 3 * len(m.data.test_ids) + len(m.data.train_ids) - len(free)
+    rendered.clear()
+    m.decaustic_image(min(free))
+    assert not rendered and m.final
+    m.decaustic_image(min(set(m.data.train_ids) - free))
+    assert rendered
+
+
 def test_passes_estimator_drops_c_without_moving_light(clean_scene, monkeypatch):
     """Without caustics C is dropped and the run ends as plain 3DGS, scored against the photos
     again. The light measured between frames is what decides (the floor is raised here: the

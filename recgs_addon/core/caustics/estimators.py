@@ -36,6 +36,12 @@ FIT_VIEWS = 24
 PASSES_MIN = 2
 
 
+#: passes: a training view whose target comes from the passes on at least this share of its
+#: pixels does not follow the model: its estimate is made once, and later rounds and the final
+#: outputs keep it (the low-pass target on the rest, against the model of that round) instead of
+#: rendering the view again.
+MODEL_FREE_SHARE = 0.99
+
 #: passes: the moving light's standard deviation between frames (log units, benchmarks/RESULTS.md:
 #: 0.006 on a survey without caustics, from misregistered texture; 0.37 under light networks)
 #: below which there are no caustics to remove.
@@ -132,7 +138,8 @@ class Estimates:
                 return image
             return self._decaustic(image, self._estimate(image, self.trainer.render_view(index), 0))
         cmap = self.maps.get(index)
-        if cmap is not None and self.final and self._by_view:   # against the model kept
+        if cmap is not None and self.final and self._by_view and not self._model_free(index):
+            # against the model kept
             cmap = self._view_estimate(index, self.trainer.render_view(index))
         return image if cmap is None else self._decaustic(image, cmap.float())
 
@@ -151,14 +158,22 @@ class Estimates:
         """Every training view's new estimate of C (the estimator's maps) against the model now."""
         if self.ccfg.estimator == "consensus":
             return self._consensus_maps()
-        renders = {i: self.trainer.render_view(i) for i in ids}
+        kept = {i: self.maps[i].float() for i in ids if self._model_free(i)}
+        renders = {i: self.trainer.render_view(i) for i in ids if i not in kept}
         if self.k is None:
             self.k = fft_filter.choose_k([self.data.view(i, 1)[1] - renders[i] for i in ids])
         if self._lightfield:
             return self._light_field_maps(renders)
         if self._likelihood:
             return self._likelihood_maps(ids, renders)
-        return {i: self._view_estimate(i, renders[i]) for i in ids}
+        return {**kept, **{i: self._view_estimate(i, renders[i]) for i in renders}}
+
+    def _model_free(self, index: int) -> bool:
+        """passes: training view ``index``'s estimate does not follow the model (its pixels come
+        from the passes, :data:`MODEL_FREE_SHARE`), and one is made."""
+        g = self.geometry
+        return bool(self._passes and g is not None and g.get("shares") and index in self.maps
+                    and g["shares"].get(index, 0.0) >= MODEL_FREE_SHARE)
 
     @property
     def _by_view(self) -> bool:
@@ -245,7 +260,8 @@ class Estimates:
                           "share_per_frame": {data.scene.cameras[i].name: round(float(x), 3)
                                               for i, x in zip(data.train_ids, info["share"])}}
         return {"estimates": {i: e.half() for i, e in zip(data.train_ids, est)},
-                "weights": {i: w.half() for i, w in zip(data.train_ids, wts)}, "light": light}
+                "weights": {i: w.half() for i, w in zip(data.train_ids, wts)}, "light": light,
+                "shares": dict(zip(data.train_ids, info["share"]))}
 
     def _even_the_light(self, views: list, ids: list[int]) -> Optional[list]:
         """Where the survey shows light fixed to the camera (the trainer's lamp, or the light

@@ -486,11 +486,12 @@ class RecGS(Estimates, Method):
 
     def finishing_renders(self) -> int:
         """The end-of-run choice scores both candidates (and the best of the recurrences) on
-        the held-out views; the caustic-free photos render every training view once more.
-        Nothing once C is dropped: the run ends as plain 3DGS."""
+        the held-out views; the caustic-free photos render every training view once more but
+        those whose estimate does not follow the model (``_model_free``). Nothing once C is
+        dropped: the run ends as plain 3DGS."""
         if self.dropped:
             return 0
-        return 3 * len(self.data.test_ids) + len(self.data.train_ids)
+        return 3 * len(self.data.test_ids) + sum(not self._model_free(i) for i in self.data.train_ids)
 
     def state_bytes(self) -> int:
         """The maps and the targets, float16 (H, W, 3) each, of every training view (likelihood:
