@@ -118,18 +118,18 @@ def overlap_matrix(views: Sequence[PassView], depth_tol: float = DEPTH_TOL) -> n
 
 
 def warp(vi: PassView, vj: PassView, depth_tol: float = DEPTH_TOL,
-         image: Optional[torch.Tensor] = None, points: Optional[torch.Tensor] = None,
-         depth_j: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, torch.Tensor]:
+         image: Optional[torch.Tensor] = None,
+         points: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Frame ``vj``'s photo sampled (bilinear) at the projections of frame ``vi``'s pixels, and
     where that is the same surface: (sRGB (H, W, 3), valid (H, W) bool: half a pixel or more
     inside ``vj`` (:func:`.consensus.inside`), in front of it, ``vj``'s own depth there within
     ``depth_tol`` (relative), ``vi``'s depth known). ``image``: an (H', W', C) image of ``vj``'s
-    size to sample instead of its photo; ``points``, ``depth_j``: ``vi``'s pixels' world points
-    (:func:`.consensus.backproject` of its :func:`depth_map`) and ``vj``'s :func:`depth_map`, if
-    already made (a frame warped from many others makes its points once)."""
+    size to sample instead of its photo; ``points``: ``vi``'s pixels' world points
+    (:func:`.consensus.backproject` of its :func:`depth_map`), if already made (a frame warped
+    from many others makes them once)."""
     pts = backproject(depth_map(vi), vi.viewmat, vi.K) if points is None else points
     grid, z = project(pts, {"viewmat": vj.viewmat, "K": vj.K, "depth": vj.surface})
-    near = _sample(depth_map(vj) if depth_j is None else depth_j, grid, "nearest")
+    near = _sample(depth_map(vj), grid, "nearest")
     ok = (inside(grid, *vj.surface.shape) & (z > 1e-6)
           & ((near - z).abs() <= depth_tol * z) & vi.covered)
     return _sample(vj.photo if image is None else image, grid, "bilinear"), ok

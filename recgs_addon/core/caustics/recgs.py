@@ -123,8 +123,8 @@ def relit_psnr(render: torch.Tensor, photo: torch.Tensor, k: int) -> float:
 #: the model, so their warm-up only makes the plain model the end-of-run choice compares with
 #: and the depth the plane sweep tries beside the points', and the caustic-free targets get the
 #: rest (0.2 scored 0.5 dB above 0.5 on a dive survey; 0.1 against 0.2, five minutes: +0.19,
-#: +0.10, +0.03 dB on three caustic surveys, the same on the README's two-minute job; its plain
-#: model scores 0.5-0.8 dB lower, benchmarks/RESULTS.md#water-caustics-steps).
+#: +0.10, +0.03 dB on three caustic surveys, the same on the README's two-minute job; the plain
+#: fallback 0.7-1.9 dB weaker against the ground truth, benchmarks/RESULTS.md#water-caustics-steps).
 WARMUP_SHARE = {"passes": 0.1}
 
 #: How far the caustic-free model may fall below the plain one in PSNR against the held-out
