@@ -791,12 +791,59 @@ def test_end_of_run_choice_between_the_caustic_free_and_the_plain_model():
     # the passes' references decide, unless the relit photos show the caustic-free model clearly worse
     from recgs_addon.core.caustics.recgs import RELIT_CHECK_K, RELIT_HARM_DB
     key = f"psnr_relit{RELIT_CHECK_K}"
-    ref = {"psnr_reference": 20.0, key: 22.0}
-    assert prefers_recgs({"psnr_reference": 21.0, key: 22.0 - RELIT_HARM_DB / 2}, ref)[0]
-    keep, why = prefers_recgs({"psnr_reference": 23.0, key: 22.0 - 2 * RELIT_HARM_DB}, ref)
+    cap = {"psnr_captured": 20.0}
+    ref = {**cap, "psnr_reference": 20.0, key: 22.0}
+    assert prefers_recgs({**cap, "psnr_reference": 21.0, key: 22.0 - RELIT_HARM_DB / 2}, ref)[0]
+    keep, why = prefers_recgs({**cap, "psnr_reference": 23.0, key: 22.0 - 2 * RELIT_HARM_DB}, ref)
     assert not keep and "relit" in why
-    assert not prefers_recgs({"psnr_reference": 19.0, key: 23.0}, ref)[0]
-    assert prefers_recgs({"psnr_reference": 21.0}, {"psnr_reference": 20.0})[0]   # no relit scores: the references
+    assert not prefers_recgs({**cap, "psnr_reference": 19.0, key: 23.0}, ref)[0]
+    # no relit scores: the references
+    assert prefers_recgs({**cap, "psnr_reference": 21.0}, {**cap, "psnr_reference": 20.0})[0]
+
+
+def test_a_plain_model_that_trained_less_is_kept_only_where_clearly_better():
+    """The warm-up's plain model trained a share of the caustic-free model's steps: it wins no
+    tie and nothing on the relit score, only a clear lead against the photos as captured or the
+    references; an untrained one is never kept."""
+    from recgs_addon.core.caustics.recgs import UNFAIR_HARM_DB, RELIT_CHECK_K, fair_competitor, prefers_recgs
+
+    key = f"psnr_relit{RELIT_CHECK_K}"
+    recgs = {"steps": 3000, "gaussians": 60000, "psnr_captured": 19.0, "psnr_reference": 25.0, key: 25.0}
+    short = {"steps": 300, "gaussians": 8000, "psnr_captured": 19.3, "psnr_reference": 24.0, key: 29.0}
+    assert not fair_competitor(short, recgs)
+    keep, why = prefers_recgs(recgs, short)   # a tie against the photos, far ahead relit: not enough
+    assert keep and "clearly better" in why
+    assert not prefers_recgs(recgs, {**short, "psnr_captured": 19.0 + 2 * UNFAIR_HARM_DB})[0]
+    assert not prefers_recgs(recgs, {**short, "psnr_reference": 25.0 + 2 * UNFAIR_HARM_DB})[0]
+    untrained = {**short, "steps": 0, "psnr_captured": 30.0}
+    assert prefers_recgs(recgs, untrained) == (True, "the plain model had not trained")
+    # trained as long: the relit score may refuse the caustic-free model
+    fair = {**short, "steps": 2500, "gaussians": 50000}
+    assert fair_competitor(fair, recgs) and not prefers_recgs(recgs, fair)[0]
+
+
+def test_no_end_of_run_score_is_won_by_a_blank_or_an_untrained_model(caustic_scene):
+    """Each score the end-of-run choice reads (against the photos as captured, relit at each
+    filter size, against the passes' references) rates a trained model above a blank render and
+    above the untrained sparse points, and the choice keeps the trained one over either."""
+    from recgs_addon.core.caustics.recgs import prefers_recgs
+
+    m = make(caustic_scene, estimator="passes", iterations=600, warmup=200, recurrence_steps=100)
+    untrained = m.trainer.snapshot()
+    m.run()
+    assert m.references
+    trained = m.trainer.snapshot()
+    blank = {**trained, "params": {**trained["params"],
+                                   "logit_opacities": torch.full_like(trained["params"]["logit_opacities"], -30.0)}}
+    scores = {name: m._scores(snap, steps) for name, snap, steps in
+              (("trained", trained, 600), ("untrained", untrained, 0), ("blank", blank, 600))}
+    keys = [k for k in scores["trained"] if k.startswith("psnr") and k != "psnr_gt"]
+    assert {"psnr_captured", "psnr_relit9", "psnr_relit25", "psnr_reference"} <= set(keys)
+    for k in keys:
+        assert scores["trained"][k] > scores["blank"][k] + 3, (k, scores)
+        assert scores["trained"][k] > scores["untrained"][k] + 1, (k, scores)
+    for other in ("untrained", "blank"):
+        assert prefers_recgs(scores["trained"], {**scores[other], "steps": 600})[0], (other, scores)
 
 
 def test_passes_run_resumed_after_its_last_round_writes_its_caustic_free_photos(caustic_scene):

@@ -4,11 +4,11 @@
 with caustic-free targets:
 
 * Warm-up: plain 3DGS on the captured images I for ``ccfg.warmup`` steps or
-  ``ccfg.warmup_share`` of the time limit, whichever comes first; without a time limit also
+  ``ccfg.warmup_share`` of the training time, whichever comes first; without a time limit also
   until density control has stopped growing the model or held-out PSNR plateaus. With a time
-  limit the plain model gets its whole share: it is what the recurrences' C is measured
-  against (an immature model's own error reads as caustics) and what the end-of-run choice
-  compares with.
+  limit the plain model gets its whole share, counted from its first step: it is what the
+  recurrences' C is measured against (an immature model's own error reads as caustics) and
+  what the end-of-run choice compares with.
 * Recurrences: render every training view and estimate each view's caustics ``C`` (each
   estimator's maps and targets: ``estimators.py``): by default
   the low-pass of the residual ``R = I - render`` (``fft_filter.py``, ``estimate.py``; less
@@ -31,7 +31,9 @@ with caustic-free targets:
   from the current model. When ``ccfg.recurrence_patience`` rounds in a row score more than
   ``ccfg.harm_tol`` dB below the plain model on the held-out views against the captured photos
   (``Trainer.heldout_psnr``), the plain model the recurrences started from comes back first.
-  The run ends with the best model on the held-out photos (``TrainConfig.keep_best``).
+  The run ends with the best model on the held-out photos (``TrainConfig.keep_best``), and
+  the end-of-run choice (:func:`prefers_recgs`) between the caustic-free model and the plain
+  one, which keeps a plain model that trained less only where it is clearly better.
 
 The baselines ``filter2d`` and ``joint`` are in ``baselines.py``.
 
@@ -46,6 +48,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 from typing import Callable, Optional
 
 import numpy as np
@@ -57,7 +60,7 @@ from ..train.trainer import Progress, Trainer
 from . import fft_filter, likelihood
 from .config import CausticConfig
 from . import estimators
-from .estimate import compensate_caustics
+from .estimate import estimate_caustics, remove_caustics
 from .estimators import Estimates, choose_estimator
 from .method import Method
 from .robust import TrimmedTargets, apply_gain, colour_gain
@@ -66,17 +69,48 @@ from .robust import TrimmedTargets, apply_gain, colour_gain
 REFRESH_EVERY = 5
 
 
+def fair_competitor(plain: dict, recgs: dict) -> bool:
+    """Whether the plain candidate trained about as much as the caustic-free one (scores of
+    ``RecGS._scores`` with their ``steps`` and ``gaussians``): at least :data:`FAIR_SHARE` of its
+    steps and of its Gaussians. A candidate without those counts (older summaries) is taken as fair."""
+    if "steps" not in plain or "steps" not in recgs:
+        return True
+    return (plain["steps"] >= FAIR_SHARE * recgs["steps"]
+            and plain.get("gaussians", 0) >= FAIR_SHARE * recgs.get("gaussians", 0))
+
+
 def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
     """Whether the RecGS model beats the plain one on the held-out views (scores of
-    ``RecGS._scores``), and why. Where the passes estimator made references for the held-out
+    ``RecGS._scores``), and why.
+
+    The plain candidate is the warm-up's model: it trained a share of the steps the caustic-free
+    one did. A model that trained less (:func:`fair_competitor`) is kept only where it is clearly
+    better, by more than :data:`UNFAIR_HARM_DB`, against the held-out photos as captured (a
+    score no estimate enters and that neither a blank nor an untrained render wins), or against
+    the passes' references; never for a tie, nor on the relit score. An untrained one is never
+    kept. Against a fair competitor: where the passes estimator made references for the held-out
     frames (caustic-free, gathered from the training frames alone), by PSNR against them, unless
     its relit score against the held-out photos (:func:`relit_psnr`, no estimate involved) falls
-    more than :data:`RELIT_HARM_DB` below the plain model's; where
-    a gain likelihood was fitted, by its data term (the model
-    under which the held-out photos, caustics and all, are more likely), with PSNR against the
-    captured photos not falling more than :data:`HARM_DB`; otherwise by that PSNR, where a
-    difference within :data:`TIE_DB` is a tie that goes to the caustic-free model.
-    benchmarks/bench_caustics.py reports how often this agrees with ground truth."""
+    more than :data:`RELIT_HARM_DB` below the plain model's; where a gain likelihood was fitted,
+    by its data term, with PSNR against the captured photos not falling more than
+    :data:`HARM_DB`; otherwise by that PSNR, where a difference within :data:`TIE_DB` is a tie
+    that goes to the caustic-free model. benchmarks/bench_caustics.py reports how often this
+    agrees with ground truth."""
+    if "psnr_captured" not in recgs or "psnr_captured" not in plain:
+        return True, "no held-out views to judge by"
+    dp = recgs["psnr_captured"] - plain["psnr_captured"]
+    if plain.get("steps") == 0:
+        return True, "the plain model had not trained"
+    if not fair_competitor(plain, recgs):
+        why = (f"the plain model trained {plain['steps']:,} steps to {plain.get('gaussians', 0):,} Gaussians against "
+               f"{recgs['steps']:,} to {recgs.get('gaussians', 0):,}, so it is kept only where clearly better: "
+               f"PSNR against the held-out photos {dp:+.2f} dB")
+        if "psnr_reference" in recgs and "psnr_reference" in plain:
+            dr = recgs["psnr_reference"] - plain["psnr_reference"]
+            why += f", against the references from the passes {dr:+.2f} dB"
+            if dr < -UNFAIR_HARM_DB:
+                return False, why
+        return dp >= -UNFAIR_HARM_DB, why
     if "psnr_reference" in recgs and "psnr_reference" in plain:
         dr = recgs["psnr_reference"] - plain["psnr_reference"]
         why = f"PSNR against the held-out frames' references from the passes {dr:+.2f} dB"
@@ -87,15 +121,22 @@ def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
             if dl < -RELIT_HARM_DB:
                 return False, why
         return dr > -TIE_DB, why
-    if "psnr_captured" not in recgs or "psnr_captured" not in plain:
-        return True, "no held-out views to judge by"
-    dp = recgs["psnr_captured"] - plain["psnr_captured"]
     if "nll" in recgs and "nll" in plain:
         dn = recgs["nll"] - plain["nll"]
         ok = dn < 0 and dp > -HARM_DB
         return ok, f"likelihood {recgs['nll']:.4f} against {plain['nll']:.4f}, PSNR {dp:+.2f} dB"
     return dp > -TIE_DB, f"PSNR against the held-out photos {dp:+.2f} dB"
 
+
+#: The plain candidate is a fair competitor where it trained at least this share of the
+#: caustic-free model's steps and holds at least this share of its Gaussians.
+FAIR_SHARE = 0.5
+#: How much better against the held-out photos as captured (or the passes' references) a plain
+#: candidate that trained less must be to be kept: on footage without caustics that the light
+#: finding took for caustics, the caustic-free model fell 6.3-6.7 dB below the photos
+#: (benchmarks/RESULTS.md#end-of-run-check); under real caustics it led the shorter-trained plain
+#: model there by 0.2-0.3 dB.
+UNFAIR_HARM_DB = 1.0
 
 #: Filter sizes of the relit score (:func:`relit_psnr`) the end-of-run candidates get.
 RELIT_K = (9, 25)
@@ -107,14 +148,25 @@ RELIT_K = (9, 25)
 #: agreed with ground truth or tied (benchmarks/RESULTS.md#end-of-run-check).
 RELIT_CHECK_K = 25
 RELIT_HARM_DB = 0.5
+#: The most the relit score's light may brighten or darken a render (a factor). Unbounded, it lit
+#: a black render up to the photo's own low frequencies; on the tests' survey (light of +-50 %)
+#: a bound of 3 left the untrained sparse points 0.4 dB below the trained model relit at k = 9,
+#: 2 kept them 3.7 dB below, and 1.5 clipped the survey's own light (the trained model's score
+#: at k = 25 down by 2.4 dB).
+RELIT_MAX_GAIN = 2.0
 
 
 def relit_psnr(render: torch.Tensor, photo: torch.Tensor, k: int) -> float:
-    """PSNR of ``render`` against ``photo`` once the light that differs between them at the
-    ``k x k`` lowest frequencies (their log ratio, low-passed, its mean kept) is taken out of
-    the photo: a score of the seabed's texture that no light over the photo (caustics' broad
-    part, exposure, a lamp's cone) moves, and that needs no caustic estimate."""
-    return psnr(render, compensate_caustics(photo, render.clamp(0, 1), k, "multiplicative", dc=True).clamp(0, 1))
+    """PSNR against ``photo`` of ``render`` lit by the light that differs between them at the
+    ``k x k`` lowest frequencies (their log ratio, low-passed, its mean kept, bounded by
+    :data:`RELIT_MAX_GAIN`): a score of the seabed's texture that no light over the photo
+    (caustics' broad part, exposure, a lamp's cone) moves, and that needs no caustic estimate.
+    The render is relit, not the photo: a photo darkened to a dark render would score the
+    blank render's error at the blank render's scale, and a blank render win."""
+    render = render.clamp(0, 1)
+    light = estimate_caustics(photo, render, k, "multiplicative", dc=True)
+    bound = math.log(RELIT_MAX_GAIN)
+    return psnr(remove_caustics(render, -light.clamp(-bound, bound), "multiplicative").clamp(0, 1), photo)
 
 
 #: The share of a time limit the warm-up (plain 3DGS) takes at most, by estimator. The low-pass
@@ -126,6 +178,9 @@ def relit_psnr(render: torch.Tensor, photo: torch.Tensor, k: int) -> float:
 #: +0.10, +0.03 dB on three caustic surveys, the same on the README's two-minute job; the plain
 #: fallback 0.7-1.9 dB weaker against the ground truth, benchmarks/RESULTS.md#water-caustics-steps).
 WARMUP_SHARE = {"passes": 0.1}
+#: The warm-up trains at least this many steps (or ``ccfg.warmup``, where fewer) whatever its
+#: share of the time: the plain model the end-of-run choice weighs is never the untrained points.
+WARMUP_MIN_STEPS = 100
 
 #: How far the caustic-free model may fall below the plain one in PSNR against the held-out
 #: photos as captured and still be kept when the likelihood prefers it: a held-out photo's own
@@ -159,6 +214,10 @@ class RecGS(Estimates, Method):
         self.rec_history: list[dict] = []
         self.next_due: Optional[int] = None
         self.stage = "warmup"
+        #: the run's clock (``schedule_elapsed``) at the warm-up's first step, and the seconds
+        #: the caustic work is planned to take (``plan.py`` sets it; the warm-up's share leaves it out)
+        self.warmup_start: Optional[float] = None
+        self.planned_seconds = 0.0
         #: the plain model the recurrences start from (``score``: held-out PSNR against the
         #: captured images; ``params``, ``sh_degree``), and rounds in a row that scored worse
         self.plain: Optional[dict] = None
@@ -283,11 +342,25 @@ class RecGS(Estimates, Method):
         return tr.step > tr.cfg.densify_from and tr.growth_over()
 
     def _warmup_time_up(self) -> bool:
-        """With a time limit, the warm-up gets at most ``warmup_share`` of it (by default the
-        estimator's :data:`WARMUP_SHARE`)."""
-        c, limit = self.ccfg, self.trainer.time_limit_s
+        """With a time limit, the warm-up gets at most ``warmup_share`` (by default the
+        estimator's :data:`WARMUP_SHARE`) of the time training has: counted from its first step,
+        of what the limit leaves once the work before it (reading, the light finding, the
+        water's fit, a compiler's start-up), the caustic work the plan expects
+        (``planned_seconds``) and the finishing are taken off. Counted from the job's start,
+        a cold numba cache and the work before training spent the whole share before the first
+        step, and the plain model the run falls back to was the untrained sparse points. It
+        trains at least :data:`WARMUP_MIN_STEPS` steps all the same."""
+        c, tr = self.ccfg, self.trainer
+        limit = tr.time_limit_s
+        if limit is None:
+            return False
+        if self.warmup_start is None:
+            self.warmup_start = tr.schedule_elapsed()
+        if tr.step < min(c.warmup, WARMUP_MIN_STEPS):
+            return False
         share = c.warmup_share if c.warmup_share is not None else WARMUP_SHARE.get(c.estimator, 0.5)
-        return limit is not None and self.trainer.schedule_elapsed() >= share * limit
+        training = limit - self.warmup_start - self.planned_seconds - tr.finishing_reserve()
+        return tr.schedule_elapsed() - self.warmup_start >= share * max(0.0, training)
 
     # --- do no harm: the held-out check of the recurrences ------------------------------------
     def _harm(self, score: Optional[float], plain: Optional[float]) -> Optional[str]:
@@ -421,7 +494,9 @@ class RecGS(Estimates, Method):
         tr = self.trainer
         if tr.restore_best() is None:
             tr.best_step = None
-        self.candidates = {"recgs": self._scores(tr.snapshot()), "plain": self._scores(self.plain)}
+        recgs_step = tr.step if tr.best_step is None else tr.best_step
+        self.candidates = {"recgs": self._scores(tr.snapshot(), recgs_step),
+                           "plain": self._scores(self.plain, self.plain.get("step", 0))}
         keep, why = prefers_recgs(self.candidates["recgs"], self.candidates["plain"])
         self.candidates["kept"], self.candidates["why"] = ("recgs" if keep else "plain"), why
         if not keep:
@@ -435,14 +510,15 @@ class RecGS(Estimates, Method):
             self._set_maps(self._estimates(self.data.train_ids))
 
     @torch.no_grad()
-    def _scores(self, snap: dict) -> dict:
-        """How a model (a ``snapshot()``) does on the held-out views: PSNR against the photos as
-        captured, against the references the passes made (where they did), the mean data term
-        of the gain likelihood against the photos (lower is more likely; where one was fitted)
-        and PSNR against ground truth (where the survey has it, reported only)."""
+    def _scores(self, snap: dict, steps: int) -> dict:
+        """How a model (a ``snapshot()``, trained ``steps`` steps) does on the held-out views:
+        its steps and Gaussians, PSNR against the photos as captured, against the references the
+        passes made (where they did), the mean data term of the gain likelihood against the
+        photos (lower is more likely; where one was fitted) and PSNR against ground truth (where
+        the survey has it, reported only)."""
         tr = self.trainer
         ids = tr.heldout_ids()
-        out: dict = {}
+        out: dict = {"steps": int(steps), "gaussians": int(snap["params"]["means"].shape[0])}
         if not ids:
             return out
         with tr.using(snap):
@@ -520,7 +596,7 @@ class RecGS(Estimates, Method):
                 **self.plain, "params": {n: v.cpu() for n, v in self.plain["params"].items()}},
             "misses": self.misses, "drop_reason": self.drop_reason, "light_gain": self.light_gain.clone(),
             "gain_model": None if self.gain_model is None else self.gain_model.state_dict(),
-            "converged_at": self.converged_at,
+            "converged_at": self.converged_at, "warmup_start": self.warmup_start,
         }
         return s
 
@@ -535,6 +611,7 @@ class RecGS(Estimates, Method):
         if "light_gain" in cs:
             self.light_gain = cs["light_gain"].clone()
         self.converged_at = cs.get("converged_at")
+        self.warmup_start = cs.get("warmup_start")
         if cs.get("gain_model") is not None:
             self.gain_model = likelihood.GainLikelihood.from_state(cs["gain_model"])
         if self.stage != "warmup":
