@@ -138,6 +138,39 @@ def test_water_is_modelled_where_the_attenuation_is_coloured_clear_of_its_error_
     assert not shown and "too weak to matter" in why
 
 
+def test_attenuation_unlike_any_natural_water_is_no_water():
+    """Attenuation below 0 beyond its error bar, or red's below green's, is no natural water:
+    the run models none, whatever the error bars say of its size."""
+    # green and blue below 0 (the reef clip's fit), red clear of its noise
+    f = _fit_dict([0.30, -0.08, -0.05], [0.01, 0.01, 0.01])
+    shown, why = water.decide(f, water.pinning(f))
+    assert not shown and "unlike any natural water" in why and "green, blue" in why
+    f = _fit_dict([0.10, 0.30, 0.20], [0.01, 0.01, 0.01])
+    shown, why = water.decide(f, water.pinning(f))
+    assert not shown and "below green's" in why
+    # within the error bars: still water
+    f = _fit_dict([0.5, 0.12, -0.005], [0.01, 0.01, 0.01])
+    assert water.decide(f, water.pinning(f))[0]
+    assert medium_fit.unnatural([0.5, 0.12, 0.18]) is None
+    assert "not above 0" in medium_fit.unnatural([-0.01, -0.002, -0.006])
+    assert "below green's" in medium_fit.unnatural([0.1, 0.2, 0.1])
+    # a fit that stopped before its refits (no natural water) has no spread
+    f = _fit_dict([-0.01, -0.002, -0.006], [0.0] * 3)
+    f["spread"] = None
+    shown, why = water.decide(f, water.pinning(f))
+    assert not shown and "not above 0" in why
+
+
+def test_a_fit_unlike_natural_water_makes_no_refits():
+    odd = {k: [v[1], v[0], v[2]] for k, v in TRUE.items()}   # red's water and green's swapped
+    point, rng, y, _ = _observations(n=150, per=5, spread=1.3, noise=0.01, seed=3, water=odd)
+    n = int(point.max()) + 1
+    length = float(np.median(rng))
+    f = medium_fit.fit_water(point, n, rng, y, length, rounds=4, natural_only=True)
+    assert "spread" not in f and medium_fit.unnatural(f["attenuation"]) is not None
+    assert "spread" in medium_fit.fit_water(point, n, rng, y, length, rounds=4)
+
+
 def test_cues_say_where_the_fit_is_unlike_natural_water():
     f = _fit_dict([0.1, 0.3, 0.2], [0.01] * 3)
     f["J_mean"] = [0.3, 0.3, 0.3]

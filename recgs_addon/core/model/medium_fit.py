@@ -35,6 +35,8 @@ bootstrap, Efron 1979): the points, not the observations, are the independent dr
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 import torch
 
@@ -382,8 +384,31 @@ def fit_under_light(point, n: int, rng, colour_lin, length: float, start: dict, 
             "light_noise": [light, noise], "veil_bound": (v_len / lf.cap).tolist()}
 
 
+def unnatural(attenuation, spread=None) -> Optional[str]:
+    """Why attenuation per channel (red, green, blue) is unlike any natural water, or None. In
+    every Jerlov type, from clear ocean to turbid coast, each channel is attenuated (above 0)
+    and red more than green (pure water absorbs red strongly; Akkaynak et al. 2017). With
+    ``spread`` (each channel's error bar) a value counts only beyond one error bar; without it,
+    only red at or below 0 or below green (red is the channel natural water takes most)."""
+    att = np.asarray(attenuation, np.float64)
+    if spread is None:
+        if att[0] <= 0:
+            return f"red's attenuation {att[0]:.3f} is not above 0"
+        if att[0] < att[1]:
+            return f"red's attenuation {att[0]:.3f} is below green's {att[1]:.3f}"
+        return None
+    sd = np.asarray(spread, np.float64)
+    low = [c for c in range(3) if att[c] < -sd[c]]
+    if low:
+        names = ", ".join(("red", "green", "blue")[c] for c in low)
+        return f"the attenuation of {names} is below 0 beyond its error bar"
+    if att[0] < att[1] - float(np.hypot(sd[0], sd[1])):
+        return f"red's attenuation {att[0]:.3f} is below green's {att[1]:.3f} beyond their error bars"
+    return None
+
+
 def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray, length: float,
-              rounds: int = 0, seed: int = 0, moving_light: bool = False) -> dict:
+              rounds: int = 0, seed: int = 0, moving_light: bool = False, natural_only: bool = False) -> dict:
     """The water of every channel from observations (``point`` (K,) ids below ``n``, ``rng``
     (K,), ``colour_lin`` (K, 3) linear colours) and, with ``rounds`` > 0, how well they pin it.
 
@@ -399,7 +424,9 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     pins its veil; ``"light_noise"`` both spreads) and no channel's veil ends near its bound
     (:data:`VEIL_BOUND`, ``"veil_bound"``: the fit found no veil there); ``"under_light"``
     says whether. The plain fit and the refits then use :data:`LIGHT_SUBSET` of the
-    observations (the fit under light's spread scaled to all of them)."""
+    observations (the fit under light's spread scaled to all of them). ``natural_only``: where the
+    fit is unlike any natural water (:func:`unnatural` without error bars) there are no refits
+    and no ``spread`` (a run that models only natural water needs none)."""
     pt = torch.from_numpy(np.asarray(point, np.int64))
     r = torch.from_numpy(np.asarray(rng, np.float64))
     y = torch.from_numpy(np.asarray(colour_lin, np.float64))
@@ -421,7 +448,7 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
             out.update(light)
         else:
             light = None
-    if rounds <= 0:
+    if rounds <= 0 or (natural_only and unnatural(out["attenuation"]) is not None):   # no error bars needed
         return out
     if light is not None:
         # refitted on the subset, the spread scaled to every observation the fit used (a

@@ -142,7 +142,7 @@ def range_profile(obs: dict) -> dict:
 
 
 def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, rounds: int = BOOT_ROUNDS,
-                    device="cpu", moving_light: bool = False) -> dict:
+                    device="cpu", moving_light: bool = False, natural_only: bool = False) -> dict:
     """Fit the water and each sparse point's true colour to the points' colours in the photos
     at their ranges (core/model/medium_fit.py: robust, each point's colour eliminated, in linear
     light), and the same points without water (one colour each, their median). Returns the
@@ -150,7 +150,8 @@ def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, ro
     colours (sRGB), both fits' mean error and the water's mean effect in 8-bit sRGB
     levels, the coefficients as fitted (``"fit"``: the attenuation of any sign) and with
     ``rounds`` their spread over refits (``"spread"``). ``moving_light``: the photos hold light
-    that moves over the seabed (caustics; core/model/medium_fit.py: the fit under it)."""
+    that moves over the seabed (caustics; core/model/medium_fit.py: the fit under it).
+    ``natural_only``: no refits where the fit is unlike any natural water (no ``"spread"``)."""
     point, rng, colour = obs["point"], obs["range"], obs["colour"]
     if moving_light:   # the light's noise needs more of them; its fit is the faster
         max_observations = max(max_observations, LIGHT_OBSERVATIONS)
@@ -160,7 +161,7 @@ def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, ro
     n = len(obs["points"])
     seen = torch.from_numpy(colour).float()
     fit = medium_fit.fit_water(point, n, rng, srgb_to_linear(seen).double().numpy(), length, rounds=rounds,
-                               moving_light=moving_light)
+                               moving_light=moving_light, natural_only=natural_only)
     # no water: each point's median colour
     order = np.argsort(point, kind="stable")
     bounds = np.flatnonzero(np.diff(point[order])) + 1
@@ -225,15 +226,25 @@ def _rgb(v, f="{:.3f}") -> str:
 
 def decide(fit: dict, pins: dict) -> tuple[bool, str]:
     """Whether the photos show water (:func:`fit_from_points` with its error bars, their
-    :func:`pinning`), and why: some channel's attenuation :data:`MIN_Z` error bars above 0, the
-    channels' as far apart (water takes red first; a fall-off alike in every channel is the
-    light's), and a change to the points' colours of :data:`MIN_EFFECT` levels."""
-    att, sd = np.asarray(fit["fit"]["attenuation"]), np.asarray(fit["spread"]["attenuation"])
+    :func:`pinning`), and why: some channel's attenuation :data:`MIN_Z` error bars above 0,
+    attenuation like a natural water's (none below 0, red above green:
+    ``medium_fit.unnatural``), the channels' as far apart (water takes red first; a fall-off
+    alike in every channel is the light's), and a change to the points' colours of
+    :data:`MIN_EFFECT` levels."""
+    att = np.asarray(fit["fit"]["attenuation"])
+    if not fit.get("spread"):   # the fit ended before its refits: no natural water
+        return False, (f"the water fitted to the sparse points (attenuation {_rgb(att)} per unit of range) is unlike "
+                       f"any natural water ({medium_fit.unnatural(att)}): no water model")
+    sd = np.asarray(fit["spread"]["attenuation"])
     z = pins["z"]
     if max(z) < MIN_Z:
         return False, ("the sparse points show no attenuation beyond their noise (per unit of range, red / green / "
                        "blue " + " / ".join(f"{a:.3f} +- {e:.3f}" for a, e in zip(att, sd))
                        + f"; needs {MIN_Z:g} error bars above 0): no measurable water")
+    odd = medium_fit.unnatural(att, sd)
+    if odd is not None:
+        return False, (f"the water fitted to the sparse points (attenuation {_rgb(att)} per unit of range) is unlike "
+                       f"any natural water ({odd}): no water model")
     hi, lo = int(att.argmax()), int(att.argmin())
     z_colour = (att[hi] - att[lo]) / max(float(np.hypot(sd[hi], sd[lo])), 1e-12)
     if z_colour < MIN_Z:
@@ -295,7 +306,8 @@ class MediumMixin:
         self._unlit(obs)
         # under caustics the fit measures the light's grey gain instead of taking it for noise
         moving = bool((getattr(self, "light", None) or {}).get("caustics"))
-        fit = fit_from_points(obs, prof["median_range"], device=self.device, moving_light=moving)
+        fit = fit_from_points(obs, prof["median_range"], device=self.device, moving_light=moving,
+                              natural_only=c.medium == "auto")
         pins = pinning(fit)
         self.medium_info.update(prefit={k: round(fit[k], 3) if isinstance(fit[k], float) else fit[k]
                                         for k in ("error_plain", "error_water", "effect_levels", "observations",
