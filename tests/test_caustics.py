@@ -861,3 +861,57 @@ def test_passes_run_resumed_after_its_last_round_writes_its_caustic_free_photos(
     assert b.candidates is not None and b.final
     for i in b.data.train_ids:
         assert torch.isfinite(b.decaustic_image(i)).all()
+
+
+def test_pass_cost_follows_the_pixels_and_this_machine():
+    """The pass estimator's planned seconds and memory grow with the frames' pixels, and its
+    seconds with this machine's probe time."""
+    from recgs_addon.core.caustics import cost
+
+    small = cost.pass_cost([(256, 192)] * 10, probe=0.001)
+    big = cost.pass_cost([(512, 384)] * 10, probe=0.001)
+    assert big.seconds == pytest.approx(4 * small.seconds) and big.bytes == 4 * small.bytes
+    assert cost.pass_cost([(256, 192)] * 10, probe=0.002).seconds == pytest.approx(2 * small.seconds)
+    assert small.megapixels == pytest.approx(10 * 256 * 192 / 1e6)
+    assert 0 < cost.probe_seconds() < 1.0
+
+
+def test_caustic_work_that_does_not_fit_the_limit_or_the_memory_trains_plain(caustic_scene, monkeypatch):
+    """The plan's estimate of the pass estimator over half the time limit, or over the memory
+    left beside training, gives the work up before training: the run trains as plain 3DGS and
+    says why; within both, the warm-up's share leaves the planned seconds out."""
+    from recgs_addon.core.caustics import cost
+
+    from recgs_addon.core.train.plan import plan_run
+
+    m = make(caustic_scene, estimator="passes", iterations=300, warmup=100)
+    work = m.planned_work()
+    assert work is not None and work.seconds > 0 and work.bytes > 0
+    plan = plan_run(m.trainer, m.state_bytes(), warmup_steps=0, caustics=True, work=work)
+    assert m.fit_work(1e6, 1 << 40) is None and m.planned_seconds == pytest.approx(work.seconds)
+    plan.keep_work(None)
+    assert plan.peak_bytes >= plan.start_bytes + work.bytes
+    assert any(line.startswith("caustic work: about") for line in plan.lines())
+    plan.keep_work("it would not fit")
+    assert "caustic work: not done: it would not fit" in plan.lines()
+    monkeypatch.setattr(cost, "UNITS_PER_MEGAPIXEL", 1e12)
+    why = m.fit_work(60.0, None)
+    assert why and "more than 50 % of the 60-s limit" in why
+    assert m.dropped and "trained as plain 3DGS" in m.drop_reason and m.planned_work() is None
+    m.run()
+    assert m.trainer.step == 300 and m.candidates is None and not m.maps
+    monkeypatch.undo()
+    m = make(caustic_scene, estimator="passes", iterations=300, warmup=100)
+    why = m.fit_work(None, 1000)
+    assert why and "GB of memory" in why and m.dropped
+
+
+def test_caustic_work_running_past_its_share_is_given_up(caustic_scene):
+    """The pass estimator checks the clock between frames: past its deadline the work is given
+    up, C dropped, and the run trains on as plain 3DGS."""
+    m = make(caustic_scene, estimator="passes", iterations=500, warmup=200, recurrence_steps=100)
+    m.pass_deadline = 0.0
+    m.run()
+    assert m.dropped and "ran past" in m.drop_reason, m.drop_reason
+    assert m.trainer.step == 500 and not m.maps
+    assert m.summary()["passes"]["overrun"] == m.drop_reason

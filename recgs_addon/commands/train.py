@@ -223,7 +223,11 @@ def _plan(args, method, trainer):
     if limit is not None and not limit > 0:
         raise RecGSError(f"--max-memory must be a number of gigabytes above 0, got {args.max_memory}")
     plan = plan_run(trainer, method.state_bytes(), limit,
-                    caustics=method.ccfg.mode in CAUSTIC_MODES and not getattr(method, "dropped", False))
+                    caustics=method.ccfg.mode in CAUSTIC_MODES and not getattr(method, "dropped", False),
+                    work=method.planned_work())
+    # the caustic work within its share of the time limit and the memory training leaves
+    room = None if plan.available_bytes is None else plan.available_bytes - (plan.start_bytes or plan.peak_bytes)
+    plan.keep_work(method.fit_work(trainer.time_limit_s, room))
     lines = plan.lines()
     if trainer.cfg.medium != "off":
         lines.append(f"water: {'modelled' if trainer.medium is not None else 'not modelled'} "

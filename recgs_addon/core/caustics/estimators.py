@@ -158,6 +158,10 @@ class Estimates:
         """Every training view's new estimate of C (the estimator's maps) against the model now."""
         if self.ccfg.estimator == "consensus":
             return self._consensus_maps()
+        if self._passes and self.geometry is None:   # the first round, or the first after a resume
+            self.geometry = self._make_pass_estimates()
+        if self._passes and self.geometry.get("overrun"):   # given up: the round drops C
+            return {}
         kept = {i: self.maps[i].float() for i in ids if self._model_free(i)}
         renders = {i: self.trainer.render_view(i) for i in ids if i not in kept}
         if self.k is None:
@@ -218,6 +222,23 @@ class Estimates:
         references gathered from the training frames alone."""
         t = time.perf_counter()
         tr, data = self.trainer, self.data
+        deadline = getattr(self, "pass_deadline", None)
+
+        def check() -> None:   # the work given up where it runs past its share of the time limit
+            if deadline is not None and time.perf_counter() - t > deadline:
+                raise _Overrun(f"the caustic work ran past {deadline:.0f} s, its share of the time limit "
+                               f"({time.perf_counter() - t:.0f} s, planned {getattr(self, 'planned_seconds', 0):.0f}): "
+                               "trained as plain 3DGS")
+        try:
+            return self._pass_estimates(t, check)
+        except _Overrun as why:
+            self.pass_info = {"seconds": round(time.perf_counter() - t, 2), "overrun": str(why)}
+            return {"estimates": None, "light": {"light_std": None}, "overrun": str(why)}
+
+    def _pass_estimates(self, t: float, check) -> dict:
+        """:meth:`_make_pass_estimates`' work, begun at ``t`` (``perf_counter``), ``check()``
+        called between frames."""
+        tr, data = self.trainer, self.data
         ids = sorted(data.train_ids + data.test_ids)
         times = read_frame_times(data.scene.scene_dir) or {}
         views = []
@@ -236,24 +257,32 @@ class Estimates:
         # the light first (a few seconds): without moving light C is dropped, so the plane
         # sweep and the gathers (most of the time) are not made
         water = tr.medium.values() if tr.medium is not None else None
+        parts = {"setup": time.perf_counter() - t}
         light = passes.light_statistics(views, overlap, train, water=water)
+        parts["light"] = time.perf_counter() - t - sum(parts.values())
         if light["light_std"] is not None and light["light_std"] < LIGHT_FLOOR:
             self.pass_info = {"seconds": round(time.perf_counter() - t, 2),
+                              "part_seconds": {k: round(v, 2) for k, v in parts.items()},
                               **{k: v for k, v in light.items() if k != "correlation_s"}}
             return {"estimates": None, "light": light}
-        geometry.refine_geometry(views, overlap, brought, pts)
+        geometry.refine_geometry(views, overlap, brought, pts, check=check)
+        parts["geometry"] = time.perf_counter() - t - sum(parts.values())
         settings = passes.settings_for(light, statistic=self.ccfg.pass_statistic, min_passes=self.ccfg.pass_min)
         # with the water modelled, the frames' colours are compared at each frame's own range
-        est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train, water=water)
+        est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train, water=water,
+                                               check=check)
         est = [_relit(e, lit, k) for e, k in zip(est, train)]
+        parts["targets"] = time.perf_counter() - t - sum(parts.values())
         if test:
             refs, _ = passes.pass_targets(views, settings, ids=test, overlap=overlap, sources=train, gains=info["gains"],
-                                          water=water)
+                                          water=water, check=check)
             refs = [_relit(r, lit, k) for r, k in zip(refs, test)]
             self.references = {i: r.half() for i, r in zip(data.test_ids, refs)}
             tr.best_by = "psnr"   # the references do not follow the model
         seconds = round(time.perf_counter() - t, 2)
+        parts["references"] = seconds - sum(parts.values())
         self.pass_info = {"median_passes": float(np.median(info["passes"])), "share": round(float(np.mean(info["share"])), 4),
+                          "part_seconds": {k: round(v, 2) for k, v in parts.items()},
                           "median_looks": round(float(np.median(info["looks"])), 2), "statistic": settings.statistic,
                           "pass_seconds": settings.pass_seconds, "seconds": seconds,
                           **{k: v for k, v in light.items() if k != "correlation_s"},
@@ -324,6 +353,10 @@ class Estimates:
             views.append(dict(photo=photo, depth=out.depth, alpha=out.alpha, viewmat=viewmat, K=K))
         targets, _, _ = consensus_targets(views, self.ccfg.consensus_stat, self.ccfg.consensus_q)
         return {i: v["photo"] - t for i, v, t in zip(ids, views, targets)}
+
+
+class _Overrun(Exception):
+    """The pass estimator ran past its share of the time limit."""
 
 
 def _relit(image: torch.Tensor, log_gain: Optional[list], k: int) -> torch.Tensor:

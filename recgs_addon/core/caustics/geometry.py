@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -436,14 +436,17 @@ def prior_geometry(views: Sequence[PassView], points: Optional[torch.Tensor]) ->
 
 def refine_geometry(views: Sequence[PassView], overlap: np.ndarray,
                     alternatives: Optional[Sequence[torch.Tensor]] = None,
-                    points: Optional[torch.Tensor] = None) -> None:
+                    points: Optional[torch.Tensor] = None, check: Optional[Callable[[], None]] = None) -> None:
     """Refine every frame's ``surface`` by the plane sweep (:func:`refine_depth`), with the
     depths ``alternatives`` (the model's) and, from the sparse ``points``, each frame's
-    :func:`relief_layers` as other hypotheses."""
+    :func:`relief_layers` as other hypotheses. ``check()`` is called before each frame (it may
+    raise to give the work up: the frames are then as they were)."""
     greys = [log_grey(v.photo) for v in views]
     height = camera_height(views)   # once: the frames' depths change only when all are refined
     refined = []
     for i, v in enumerate(views):
+        if check is not None:
+            check()
         h, w = v.surface.shape
         layers = relief_layers(v.viewmat, v.K, h, w, points.to(v.viewmat.device, v.viewmat.dtype)) \
             if points is not None and len(points) else []

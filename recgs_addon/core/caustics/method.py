@@ -53,6 +53,17 @@ class Method:
         """Memory the method's per-view state (caustic maps, targets) takes at its largest."""
         return 0
 
+    def planned_work(self):
+        """What the method's work besides training will cost (a ``cost.PassCost``: seconds and
+        peak bytes), or None where it has none worth planning."""
+        return None
+
+    def fit_work(self, time_limit_s, room_bytes) -> Optional[str]:
+        """Given the run's time limit (seconds, or None) and the memory left once training has
+        what it needs (bytes, or None), give up the work :meth:`planned_work` names where it does
+        not fit, and say why (None: it fits, or there is none)."""
+        return None
+
     def summary(self) -> dict:
         """What the method adds to a run's metrics."""
         return {"best_step": self.trainer.best_step}

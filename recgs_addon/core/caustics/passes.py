@@ -60,7 +60,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -203,7 +203,7 @@ def gather(i: int, views: Sequence[PassView], groups: list[list[int]], depth_tol
 def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] = None,
                    ids: Optional[Sequence[int]] = None, overlap: Optional[np.ndarray] = None,
                    sources: Optional[Sequence[int]] = None, gains: Optional[dict] = None,
-                   water: Optional[dict] = None):
+                   water: Optional[dict] = None, check: Optional[Callable[[], None]] = None):
     """The passes' caustic-free estimate of frames ``ids`` (default all; module docstring) and
     where to use it: (estimates (sRGB, list of (H, W, 3)), weights (list of (H, W) in [0, 1]:
     1 where at least ``min_passes`` passes saw the pixel, 0 where fewer than ``min_passes - 1``
@@ -215,7 +215,8 @@ def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] =
     may be gathered (default all; held-out frames get references gathered from the training
     frames alone); ``gains``: the calibration to use (default: made from ``ids``' own photos);
     ``water``: the fitted water's coefficients, if the run models it (:func:`gather`): the
-    light's floor is then taken on the direct light at each frame's own range."""
+    light's floor is then taken on the direct light at each frame's own range. ``check()`` is
+    called before each frame's gather (it may raise to give the work up)."""
     s = settings or PassSettings()
     ids = list(range(len(views))) if ids is None else list(ids)
     overlap = overlap_matrix(views, s.depth_tol) if overlap is None else overlap
@@ -223,6 +224,8 @@ def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] =
     groups = {i: choose_passes(i, views, overlap, s, sources) for i in ids}
     looks = []
     for i in ids:
+        if check is not None:
+            check()
         samples, valid, npass, veil = gather(i, views, groups[i], s.depth_tol, water)
         looks.append(effective_looks(valid, [views[j].time for g in groups[i] for j in g], s.light_seconds))
         veils.append(veil)

@@ -182,6 +182,11 @@ WARMUP_SHARE = {"passes": 0.1}
 #: share of the time: the plain model the end-of-run choice weighs is never the untrained points.
 WARMUP_MIN_STEPS = 100
 
+#: The share of a time limit the caustic work (the pass estimator) may take: beyond it (by the
+#: plan's estimate, or the clock while it runs) the run trains as plain 3DGS, so that training
+#: keeps the rest of the limit.
+CAUSTIC_TIME_SHARE = 0.5
+
 #: How far the caustic-free model may fall below the plain one in PSNR against the held-out
 #: photos as captured and still be kept when the likelihood prefers it: a held-out photo's own
 #: caustics are no model's, and a model of the mean light meets them differently than one of
@@ -218,6 +223,8 @@ class RecGS(Estimates, Method):
         #: the caustic work is planned to take (``plan.py`` sets it; the warm-up's share leaves it out)
         self.warmup_start: Optional[float] = None
         self.planned_seconds = 0.0
+        #: seconds the pass estimator may run before it is given up (``fit_work``; None: no limit)
+        self.pass_deadline: Optional[float] = None
         #: the plain model the recurrences start from (``score``: held-out PSNR against the
         #: captured images; ``params``, ``sh_degree``), and rounds in a row that scored worse
         self.plain: Optional[dict] = None
@@ -262,6 +269,12 @@ class RecGS(Estimates, Method):
         ids = self._fit_views() if self._likelihood else self.data.train_ids
         previous_gain = self.gain_model
         new = self._estimates(ids)
+        if not new and self._passes and (self.geometry or {}).get("overrun"):   # given up: no C this round
+            self.recurrence += 1
+            entry = {"recurrence": self.recurrence, "iteration": tr.step, "elapsed": round(tr.elapsed, 2),
+                     "c_change": 0.0, "mean_abs_c": 0.0, "k": self.k, "overrun": self.geometry["overrun"]}
+            self.rec_history.append(entry)
+            return entry
         if self._likelihood:   # the light maps follow the model's texture too; the gains' distribution settles
             change = self.gain_model.distance(previous_gain) if previous_gain is not None else 1.0
         else:
@@ -297,7 +310,9 @@ class RecGS(Estimates, Method):
         entry = self.recur()
         prev = self.rec_history[-2] if len(self.rec_history) >= 2 else None
         done = None
-        if entry.get("light_std") is not None and entry["light_std"] < estimators.LIGHT_FLOOR:
+        if self._passes and (self.geometry or {}).get("overrun"):
+            self._drop(self.geometry["overrun"], restore=False)
+        elif entry.get("light_std") is not None and entry["light_std"] < estimators.LIGHT_FLOOR:
             self._drop(f"no moving light between the frames (its standard deviation {entry['light_std']:.3f} "
                        f"log units, below {estimators.LIGHT_FLOOR})", restore=False)
         elif entry["mean_abs_c"] < c.caustic_floor:
@@ -571,6 +586,36 @@ class RecGS(Estimates, Method):
         if self.dropped:
             return 0
         return 3 * len(self.data.test_ids) + sum(not self._model_free(i) for i in self.data.train_ids)
+
+    def planned_work(self):
+        """The pass estimator's expected cost (``cost.py``), where it will run: every training
+        and held-out frame at the training resolution."""
+        if self.dropped or not self._passes:
+            return None
+        from .cost import pass_cost
+        return pass_cost([self.data.sizes[i] for i in self.data.train_ids + self.data.test_ids])
+
+    def fit_work(self, time_limit_s, room_bytes) -> Optional[str]:
+        """The caustic work keeps at most :data:`CAUSTIC_TIME_SHARE` of a time limit and fits the
+        memory the plan leaves; otherwise the run trains as plain 3DGS and says why."""
+        work = self.planned_work()
+        if work is None:
+            return None
+        why = None
+        if time_limit_s is not None and work.seconds > CAUSTIC_TIME_SHARE * time_limit_s:
+            why = (f"the caustic work would take about {work.seconds:.0f} s here ({work.megapixels:.1f} megapixels of "
+                   f"frames), more than {100 * CAUSTIC_TIME_SHARE:.0f} % of the {time_limit_s:.0f}-s limit")
+        elif room_bytes is not None and work.bytes > room_bytes:
+            why = (f"the caustic work would need about {work.bytes / 2 ** 30:.1f} GB of memory here "
+                   f"({work.megapixels:.1f} megapixels of frames), more than the {max(0, room_bytes) / 2 ** 30:.1f} GB "
+                   "left beside training")
+        if why is None:
+            self.planned_seconds = work.seconds
+            self.pass_deadline = None if time_limit_s is None else CAUSTIC_TIME_SHARE * time_limit_s
+            return None
+        self._drop(f"{why}: trained as plain 3DGS (a longer limit, a lower resolution or fewer photos would fit it)",
+                   restore=False)
+        return why
 
     def state_bytes(self) -> int:
         """The maps and the targets, float16 (H, W, 3) each, of every training view (likelihood:

@@ -150,9 +150,21 @@ class RunPlan:
     looks_per_point: Optional[float] = None    # ... and independent looks at the light (coverage.looks_of)
     notes: list = field(default_factory=list)
     start_bytes: Optional[int] = None   # the estimate with the model at its size now
+    work_seconds: Optional[float] = None   # a caustic method's work besides training (its estimate)
+    work_bytes: Optional[int] = None       # ... and its peak memory beside the model at its start
+    work_megapixels: Optional[float] = None   # ... over this many megapixels of frames
+    work_given_up: Optional[str] = None    # why that work will not be done (it does not fit)
 
     def summary(self) -> dict:
         return asdict(self)
+
+    def keep_work(self, given_up: Optional[str]) -> None:
+        """The caustic work the plan holds is done (``given_up`` None: its memory, beside the
+        model at its start, counts in the peak: it runs early in the run) or not (why)."""
+        if given_up is not None:
+            self.work_given_up = given_up
+        elif self.work_bytes is not None:
+            self.peak_bytes = max(self.peak_bytes, (self.start_bytes or 0) + self.work_bytes)
 
     def lines(self) -> list[str]:
         """The plan in words, for the job's log and the panel."""
@@ -177,6 +189,11 @@ class RunPlan:
         if self.seconds_per_1000 is not None:
             out.append(f"time: about {self.seconds_per_1000:.0f} s per 1,000 steps now ({self.gaussians:,} "
                        f"Gaussians, {self.path} path); steps slow down as the model grows")
+        if self.work_given_up is not None:
+            out.append(f"caustic work: not done: {self.work_given_up}")
+        elif self.work_seconds is not None:
+            out.append(f"caustic work: about {self.work_seconds:.0f} s and {gb(self.work_bytes)} of memory "
+                       f"({self.work_megapixels:.1f} megapixels of frames)")
         out.extend(self.notes)
         return out
 
@@ -190,7 +207,7 @@ def estimate_peak(now: int, pixels: int, method_bytes: int, sh_degree: int, gaus
 
 
 def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, warmup_steps: int = 3,
-             caustics: bool = False) -> RunPlan:
+             caustics: bool = False, work=None) -> RunPlan:
     """Measure and estimate what ``trainer``'s run needs (its images loaded), cap an automatic
     budget to the memory there is, and refuse (:class:`RecGSError`) a run that cannot fit.
 
@@ -199,7 +216,10 @@ def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, 
     caustic method's per-view state at its largest. ``warmup_steps``: forward and backward
     passes timed on training views at the training resolution (the model does not change).
     ``caustics``: the run removes caustics (the plan then says where the survey's coverage is
-    short of what that needs)."""
+    short of what that needs). ``work``: a caustic method's work besides training, with its
+    ``seconds``, ``bytes`` and ``megapixels`` (``core/caustics/cost.py``): shown; whether it fits
+    is the method's to decide (``Method.fit_work``), and :meth:`RunPlan.keep_work` counts it in
+    the peak."""
     data, cfg = trainer.data, trainer.cfg
     big = max(data.train_ids + data.test_ids, key=lambda i: data.sizes[i][0] * data.sizes[i][1])
     w, h = data.sizes[big]
@@ -217,6 +237,8 @@ def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, 
     fixed = estimate_peak(now, w * h, method_bytes, degree, n, n)   # the model as it is now
     plan = RunPlan(w, h, cam.width, cam.height, len(data.train_ids), len(data.test_ids), n, trainer.budget,
                    data.image_bytes(), method_bytes, peak, limit_bytes, None, start_bytes=fixed)
+    if work is not None:
+        plan.work_seconds, plan.work_bytes, plan.work_megapixels = work.seconds, work.bytes, work.megapixels
     if limit_bytes is not None and peak > limit_bytes:
         room = int((limit_bytes - fixed) / gaussian_bytes(degree))
         gb = lambda b: f"{b / 2 ** 30:.1f} GB"  # noqa: E731
