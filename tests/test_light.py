@@ -31,9 +31,16 @@ def _caustic(x, y, phase):
     return 0.55 + 1.6 * lines
 
 
-def survey(kind: str, n: int = 24, seed: int = 0):
+def _relief(x, y):
+    """Rocks standing out of the seabed (metres): what the flat sparse points below miss."""
+    return 0.35 * np.exp(-((np.sin(2.1 * x) + np.cos(1.7 * y)) ** 2)) * np.cos(3.1 * x) ** 2
+
+
+def survey(kind: str, n: int = 24, seed: int = 0, noise: float = 0.0):
     """A duck-typed ``TrainData`` of ``n`` frames along two rows, with frame times 0.5 s apart.
-    ``kind``: caustics | lamp | exposure | even."""
+    ``kind``: caustics | lamp | exposure | even | relief (rocks the sparse points, all on the
+    flat seabed, do not show: the warps land off by the rocks' parallax). ``noise``: the
+    photos' own noise, independent in every channel (sRGB levels of 1)."""
     rng = np.random.default_rng(seed)
     cams, photos, times = [], [], {}
     u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
@@ -48,9 +55,13 @@ def survey(kind: str, n: int = 24, seed: int = 0):
         name = f"f{i:03d}.png"
         cams.append(Camera(name, W, H, F, F, W / 2, H / 2, R, t))
         times[name] = 0.5 * i
-        # the seabed point under each pixel (z = 0)
+        # the seabed point under each pixel (z = 0, or on the rocks)
         wx = cx + (u - W / 2) / F * z
         wy = cy - (v - H / 2) / F * z
+        if kind == "relief":
+            for _ in range(4):   # where the ray meets the rocks
+                h = _relief(wx, wy)
+                wx, wy = cx + (u - W / 2) / F * (z - h), cy - (v - H / 2) / F * (z - h)
         lin = _texture(wx, wy) ** 2.2
         if kind == "caustics":
             lin = lin * _caustic(wx, wy, rng.uniform(0, 2 * np.pi, 4))
@@ -60,8 +71,10 @@ def survey(kind: str, n: int = 24, seed: int = 0):
             lin = lin * np.exp(-1.2 * ((xn - 0.2) ** 2 + (yn + 0.1) ** 2)) * (ALTITUDE / r) ** 2 * 1.4
         elif kind == "exposure":
             lin = lin * math.exp(rng.normal(0, 0.25))
-        srgb = np.clip(lin, 0, 1) ** (1 / 2.2)
-        photos.append(torch.tensor(np.repeat(srgb[..., None], 3, -1), dtype=torch.float32))
+        srgb = np.repeat((np.clip(lin, 0, 1) ** (1 / 2.2))[..., None], 3, -1)
+        if noise:
+            srgb = np.clip(srgb + rng.normal(0, noise, srgb.shape), 0, 1)
+        photos.append(torch.tensor(srgb, dtype=torch.float32))
     gx, gy = np.meshgrid(np.linspace(-1.9, 1.9, 70), np.linspace(-1.3, 1.3, 50))
     points = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], 1).astype(np.float32)
     scene = SimpleNamespace(cameras=cams, points=points)
@@ -86,6 +99,32 @@ def test_only_light_that_moves_over_the_seabed_is_caustics(kind):
         assert f.exposure > 0.1 and "exposure" in f.reason and f.camera < light.CAMERA_FLOOR
     if kind == "even":
         assert f.total < light.MOVING_FLOOR and f.camera < light.CAMERA_FLOOR
+
+
+def test_misregistration_that_grows_with_the_baseline_is_not_caustics():
+    """Rocks the sparse points miss: the warps land off by their parallax, so what differs
+    between frames grows with the distance between the cameras; between frames taken from
+    nearly the same place it is small, and no caustics are found, for that reason."""
+    data, times = survey("relief")
+    f = light.survey_light(data, times=times)
+    assert not f.caustics, f.reason
+    assert f.moving_far > light.GROWTH * f.moving and f.moving < f.floor
+    assert "grows with the distance between the cameras" in f.decided_by and f.decided_by in f.reason
+
+
+def test_the_noise_floor_is_measured_on_the_survey():
+    """Noisy photos raise the floor (what the colour channels do not share, which sunlight does
+    not make) above the fixed one: noise alone is not caustics, caustics under it still are."""
+    noisy, times = survey("even", noise=0.06)
+    f = light.survey_light(noisy, times=times)
+    assert f.floor > 2 * light.MOVING_FLOOR and f.colour_noise > 0
+    assert not f.caustics and f.moving < f.floor, f.reason
+    lit, times = survey("caustics", noise=0.06)
+    g = light.survey_light(lit, times=times)
+    assert g.caustics and g.moving > g.floor, g.reason
+    assert "above the noise measured on the survey's photos" in g.decided_by
+    quiet, times = survey("even")
+    assert light.survey_light(quiet, times=times).floor == light.MOVING_FLOOR   # grey, noise-free: the fixed floor
 
 
 def test_the_fit_recovers_a_pattern_fixed_in_the_image():

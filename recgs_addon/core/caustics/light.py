@@ -20,9 +20,24 @@ lamp's cone, vignetting; the terms of core/model/lamp.py, which this fit starts)
 every frame, ``a`` and ``b`` the fall-off with range (a
 lamp's inverse square, the water's attenuation over the path), ``e_ij`` the pair's exposure,
 and ``m`` the rest: light that moves over the seabed. One robust least-squares fit over every
-pair (Huber weights) finds the camera's part; ``m``'s spread, over pairs far apart in time
-(independent light), is the moving light's. Caustics are found where it stands above
-:data:`MOVING_FLOOR`; the other parts are reported for what they are.
+pair (Huber weights) finds the camera's part; the rest, band-passed, on the flattest seabed, is
+what moves.
+
+What moves is not all light. A warp that lands a little off (the points' depth over relief,
+repetitive tiles matched wrongly, grazing views) leaves a residual on the texture's edges, and
+gloss changes with the view: both grow with the pair's *baseline* (how far apart the cameras
+are, over the range), and vanish between frames taken from nearly the same place. Sunlight
+caustics do not depend on the baseline; they change with time. So every frame spread over the
+survey gets two partners: the one furthest away in time (independent light), and the nearest
+in space among those at least :data:`NEAR_LAG_S` apart in time (independent light too, the
+least misregistration). The moving light is the spread of the near pairs; how much more the far
+pairs show is the misregistration's share, reported beside it. Its *noise floor* is measured on
+the survey: the same statistic on what differs between the colour channels of the near pairs
+(sunlight caustics are grey: they multiply every channel alike; what the channels do not share
+is the photos' noise, their compression and the misregistration's colour), times
+:data:`FLOOR_FACTOR`, and at least :data:`MOVING_FLOOR`. Caustics are found where the moving
+light stands above that floor and is :data:`MOVING_SHARE` of how the frames differ; the other
+parts are reported for what they are, and the finding says which evidence decided.
 
 Shapes: photos (H, W, 3) float32 sRGB in [0, 1]; cameras ``viewmat`` (4, 4), ``K`` (3, 3).
 """
@@ -51,10 +66,17 @@ PAIR_OVERLAP = 0.3
 INDEPENDENT_S = 4.0
 #: Blur (pixels at :data:`LIGHT_SIDE`) of the grey levels compared: resampled texture, not light.
 LIGHT_SIGMA = 2.0
-#: The moving light's spread (standard deviation of its log gain at a point) from which a
-#: survey holds caustics worth removing: 0.03 log units is 3 % of the light, under the
-#: stand-in of the earlier light test (its floor, 0.03, held on every benchmark survey).
+#: The least noise floor of the moving light's spread (standard deviation of its log gain at a
+#: point): 0.03 log units is 3 % of the light. Generated surveys without caustics read
+#: 0.008-0.013, real footage without them 0.011-0.015 at the near baseline (0.027-0.094 at the
+#: far one), caustic surveys 0.10-0.40 (benchmarks/RESULTS.md#light-evidence).
 MOVING_FLOOR = 0.03
+#: The moving light must stand this many times above the survey's measured noise (the near
+#: pairs' colour residual, which sunlight does not make).
+FLOOR_FACTOR = 3.0
+#: The near partner: the nearest frame in space at least this many seconds apart in time
+#: (caustics decorrelate in about 0.1-1 s; frames without times count as apart).
+NEAR_LAG_S = 1.0
 #: ... and the share of the frames' differences it must make (its variance over its own and the
 #: camera's light's and exposure's together): sunlight caustics are the main reason a seabed
 #: point differs between frames; under a lamp on the camera what the fit leaves (the lamp's
@@ -94,6 +116,10 @@ class LightFinding:
     independent: bool             # the pairs were far enough apart in time to see independent light
     seconds: float = 0.0
     reason: str = ""
+    moving_far: float = 0.0       # the moving light of the pairs furthest apart (misregistration grows there)
+    floor: float = MOVING_FLOOR   # the survey's noise floor for the moving light (module docstring)
+    colour_noise: float = 0.0     # ... measured from what the channels do not share, near pairs
+    decided_by: str = ""          # the evidence that decided (one phrase)
     pattern_coef: list = field(default_factory=list)   # the lamp's pattern terms (core/model/lamp.py)
     range_coef: list = field(default_factory=list)     # its fall-off: (a, b) of a log(r) + b r
 
@@ -138,25 +164,34 @@ def _frame(photo: torch.Tensor, cam, points: torch.Tensor, time: Optional[float]
 
 
 def choose_pairs(points: np.ndarray, cameras: Sequence, ids: Sequence[int], times: dict,
-                 count: int = LIGHT_PAIRS, seed: int = 0) -> list[tuple[int, int]]:
-    """Up to ``count`` pairs (i, j) of ``ids`` that see the same seabed: for frames spread over
-    the survey, the partner that sees at least :data:`PAIR_OVERLAP` of the frame's sparse points,
-    the one furthest in time (independent light; any partner without times)."""
+                 count: int = LIGHT_PAIRS, seed: int = 0) -> list[tuple[int, int, str]]:
+    """Pairs ``(i, j, kind)`` of ``ids`` that see the same seabed: for up to ``count`` frames
+    spread over the survey, the partner that sees at least :data:`PAIR_OVERLAP` of the frame's
+    sparse points and is furthest in time (``"far"``: independent light; any partner without
+    times), and the partner nearest in space at least :data:`NEAR_LAG_S` away in time
+    (``"near"``: the least misregistration; module docstring)."""
     rng = np.random.default_rng(seed)
     pts = np.asarray(points, np.float64)
     if len(pts) > 5000:
         pts = pts[rng.choice(len(pts), 5000, replace=False)]
     seen = np.zeros((len(pts), len(ids)), bool)
+    centres = np.zeros((len(ids), 3))
     for k, i in enumerate(ids):
         cam = cameras[i]
         uv, z = cam.project(pts)
         seen[:, k] = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        centres[k] = -np.asarray(cam.viewmat)[:3, :3].T @ np.asarray(cam.viewmat)[:3, 3]
     n = seen.sum(0)
-    order = [ids.index(i) for i in ids]
+    order = list(range(len(ids)))
     starts = order if len(order) <= count else [order[int(k * len(order) / count)] for k in range(count)]
     sf = seen.astype(np.float32)
     used = np.zeros(len(ids))
-    pairs = []
+    pairs: list[tuple[int, int, str]] = []
+
+    def add(a, b, kind):
+        pair = (min(ids[a], ids[b]), max(ids[a], ids[b]), kind)
+        if pair[:2] not in [p[:2] for p in pairs]:
+            pairs.append(pair)
     for a in starts:
         if n[a] < 20:
             continue
@@ -174,9 +209,10 @@ def choose_pairs(points: np.ndarray, cameras: Sequence, ids: Sequence[int], time
         score = 2.0 * far + share[cand] * (0.5 + 0.5 * rng.random(len(cand))) - used[cand]
         b = int(cand[int(np.argmax(score))])
         used[b] += 1
-        pair = (min(ids[a], ids[b]), max(ids[a], ids[b]))
-        if pair not in pairs:
-            pairs.append(pair)
+        add(a, b, "far")
+        apart = cand[lag >= NEAR_LAG_S]
+        if len(apart):
+            add(a, int(apart[int(np.argmin(np.linalg.norm(centres[apart] - centres[a], axis=1)))]), "near")
     return pairs
 
 
@@ -192,6 +228,9 @@ class PairSamples:
     texture: np.ndarray    # frame i's log-grey gradient there (per pixel of LIGHT_SIDE)
     index: np.ndarray      # flat pixel index in frame i
     shape: tuple           # frame i's (H, W)
+    colour: Optional[np.ndarray] = None   # (2, P) what the channels do not share: the log ratio of
+    #                                       red and of blue, less green's (None: a grey photo)
+    baseline: float = 0.0  # the cameras' distance over the median range
 
 
 def _pair_samples(vi: PassView, vj: PassView) -> Optional[PairSamples]:
@@ -204,10 +243,18 @@ def _pair_samples(vi: PassView, vj: PassView) -> Optional[PairSamples]:
     h, w = vi.surface.shape
     s = LIGHT_SIGMA * w / LIGHT_SIDE
     other = _sample(vj.photo, grid, "bilinear")
-    own_lin = srgb_to_linear(vi.photo.clamp(0, 1)).mean(-1)
+    own_rgb, other_rgb = srgb_to_linear(vi.photo.clamp(0, 1)), srgb_to_linear(other.clamp(0, 1))
+    own_lin = own_rgb.mean(-1)
     a = smooth(own_lin.unsqueeze(0), ok.unsqueeze(0), s)[0]
-    b = smooth(srgb_to_linear(other.clamp(0, 1)).mean(-1).unsqueeze(0), ok.unsqueeze(0), s)[0]
+    b = smooth(other_rgb.mean(-1).unsqueeze(0), ok.unsqueeze(0), s)[0]
     bright = ok & (a > DARK) & (b > DARK)     # too dark to carry light (housing corners, shadow)
+    colour = None
+    if float((vi.photo - vi.photo.mean(-1, keepdim=True)).abs().max()) > 1e-3:   # not a grey photo
+        mask3 = ok.unsqueeze(0).expand(3, -1, -1)
+        ca = smooth(own_rgb.permute(2, 0, 1), mask3, s).clamp_min(DARK / 3)
+        cb = smooth(other_rgb.permute(2, 0, 1), mask3, s).clamp_min(DARK / 3)
+        d = torch.log(cb) - torch.log(ca)
+        colour = torch.stack([d[0] - d[1], d[2] - d[1]])
     idx = torch.nonzero(bright.reshape(-1))[:, 0].numpy()
     if len(idx) < 200:
         return None
@@ -221,13 +268,15 @@ def _pair_samples(vi: PassView, vj: PassView) -> Optional[PairSamples]:
     half = 0.5 * w
     hj, wj = vj.surface.shape
     p = flat(pts)
+    ri = np.linalg.norm(p - _centre(vi.viewmat).numpy(), axis=1)
     return PairSamples(
         d=np.log(flat(b)) - np.log(flat(a)),
         xi=np.stack([(u + 0.5 - 0.5 * w) / half, (v + 0.5 - 0.5 * h) / half]),
         xj=np.stack([flat(g[..., 0]), flat(g[..., 1]) * hj / wj]),   # grid_sample coordinates, centred
-        ri=np.linalg.norm(p - _centre(vi.viewmat).numpy(), axis=1),
-        rj=np.linalg.norm(p - _centre(vj.viewmat).numpy(), axis=1),
-        texture=flat(tex), index=idx, shape=(h, w))
+        ri=ri, rj=np.linalg.norm(p - _centre(vj.viewmat).numpy(), axis=1),
+        texture=flat(tex), index=idx, shape=(h, w),
+        colour=None if colour is None else np.stack([flat(c) for c in colour]),
+        baseline=float(torch.linalg.vector_norm(_centre(vi.viewmat) - _centre(vj.viewmat))) / max(float(np.median(ri)), 1e-9))
 
 
 def _robust_var(r: np.ndarray) -> float:
@@ -277,7 +326,7 @@ def moving_light(s: PairSamples, residual: np.ndarray) -> float:
     less its smooth part (what a light fixed to the camera leaves beyond the fitted pattern),
     where the seabed has little texture (a residual that follows texture is the warp's
     misregistration, not light; caustics show best on sand). Variance of a log ratio of two
-    frames, so twice the light's own."""
+    frames, so twice the light's own. (Any residual of the pair's pixels: the channels' too.)"""
     h, w = s.shape
     img = torch.zeros(h * w, dtype=torch.float64)
     mask = torch.zeros(h * w, dtype=torch.bool)
@@ -309,24 +358,36 @@ def survey_light(data, ids: Optional[Sequence[int]] = None, times: Optional[dict
             frames[i] = _frame(as_float(data.photo(i).cpu()), data.camera(i), pts, times.get(cams[i].name))
         return frames[i]
 
-    samples, lags = [], []
-    for i, j in pairs:
+    samples, lags, kinds = [], [], []
+    for i, j, kind in pairs:
         vi, vj = frame(i), frame(j)
         if vi is None or vj is None:
             continue
         s = _pair_samples(vi, vj)
         if s is not None:
             samples.append(s)
+            kinds.append(kind)
             ti, tj = times.get(cams[i].name), times.get(cams[j].name)
             lags.append(None if ti is None or tj is None else abs(tj - ti))
     if len(samples) < 2:
         return LightFinding(False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, len(samples), False,
                             round(_time.perf_counter() - t0, 2),
-                            "too few overlapping frames to compare the light: caustics not looked for")
+                            "too few overlapping frames to compare the light: caustics not looked for",
+                            decided_by="too few overlapping frames")
     fit = fit_light(samples)
-    independent = [lag is None or lag > INDEPENDENT_S for lag in lags]
-    use = [k for k, ind in enumerate(independent) if ind] or list(range(len(samples)))
-    moving = math.sqrt(float(np.median([moving_light(samples[k], fit["residual"][k]) for k in use])) / 2)
+    far_ids = [k for k, kind in enumerate(kinds) if kind == "far"] or list(range(len(samples)))
+    independent = [lags[k] is None or lags[k] > INDEPENDENT_S for k in far_ids]
+    use = [k for k, ind in zip(far_ids, independent) if ind] or far_ids
+    near = [k for k, kind in enumerate(kinds) if kind == "near"] or use
+    spread = lambda ks, f: math.sqrt(float(np.median([f(k) for k in ks])) / 2)   # noqa: E731
+    moving_far = spread(use, lambda k: moving_light(samples[k], fit["residual"][k]))
+    moving = spread(near, lambda k: moving_light(samples[k], fit["residual"][k]))
+    coloured = [k for k in near if samples[k].colour is not None]
+    # what the channels do not share, as the grey light's noise: a channel's log ratio less
+    # green's holds six times the noise variance of the three channels' mean
+    colour_noise = spread(coloured, lambda k: float(np.mean([moving_light(samples[k], c) for c in samples[k].colour]))
+                          ) / math.sqrt(6.0) if coloured else 0.0
+    floor = max(MOVING_FLOOR, FLOOR_FACTOR * colour_noise)
     total = math.sqrt(float(np.median([_robust_var(samples[k].d) for k in use])) / 2)
     resid = math.sqrt(float(np.median([_robust_var(fit["residual"][k]) for k in use])) / 2)
     explained = 1.0 - (resid / total) ** 2 if total > 0 else 0.0
@@ -341,15 +402,39 @@ def survey_light(data, ids: Optional[Sequence[int]] = None, times: Optional[dict
     r_med = float(np.median(ranges))
     exposure = float(np.std(fit["exposure"]) / math.sqrt(2)) if len(fit["exposure"]) > 1 else 0.0
     # what the camera's light and the exposure make a point differ by between two frames
-    fixed = float(np.median([np.var(fit["camera"][k]) for k in use])) / 2 + exposure ** 2
+    fixed = float(np.median([np.var(fit["camera"][k]) for k in near])) / 2 + exposure ** 2
     share = moving ** 2 / (moving ** 2 + fixed) if moving > 0 else 0.0
-    found = moving >= MOVING_FLOOR and share >= MOVING_SHARE
+    found = moving >= floor and share >= MOVING_SHARE
     f = LightFinding(found, moving, share, camera, math.sqrt(float(np.var(pat))), float(a + b * r_med),
                      exposure, total, explained, len(samples), all(independent),
                      round(_time.perf_counter() - t0, 2), pattern_coef=list(fit["pattern"]),
-                     range_coef=[float(a), float(b)])
+                     range_coef=[float(a), float(b)], moving_far=moving_far, floor=floor, colour_noise=colour_noise)
+    f.decided_by = evidence(f)
     f.reason = describe(f)
     return f
+
+
+#: The far pairs' moving light over the near pairs' from which what moves is said to grow with
+#: the distance between the cameras (misregistration, gloss) rather than with time.
+GROWTH = 2.0
+
+
+def evidence(f: LightFinding) -> str:
+    """The evidence that decided the finding, in one phrase."""
+    pct = lambda v: f"{100 * (math.exp(v) - 1):.1f} %"   # noqa: E731
+    floor = (f"the noise measured on the survey's photos ({pct(f.floor)}: {FLOOR_FACTOR:g} times what the colour "
+             f"channels do not share)" if f.floor > MOVING_FLOOR else f"the floor of {pct(MOVING_FLOOR)}")
+    if f.caustics:
+        return (f"between frames taken from nearly the same place the light moves by {pct(f.moving)}, above "
+                f"{floor}, and makes {100 * f.share:.0f} % of how they differ")
+    if f.moving >= f.floor:
+        return (f"the light fixed to the camera and the exposure make most of how the frames differ (what moves "
+                f"makes {100 * f.share:.0f} %, caustics make {100 * MOVING_SHARE:.0f} % or more)")
+    if f.moving_far >= f.floor and f.moving_far >= GROWTH * f.moving:
+        return (f"what moves grows with the distance between the cameras ({pct(f.moving)} between frames taken from "
+                f"nearly the same place, {pct(f.moving_far)} between frames far apart): the warp's misregistration "
+                f"or gloss, not light; below {floor} where the cameras are close")
+    return f"what moves between frames ({pct(f.moving)}) stays below {floor}"
 
 
 def describe(f: LightFinding) -> str:
@@ -367,5 +452,4 @@ def describe(f: LightFinding) -> str:
         seen += " (some frames compared were close in time, and their light may not have changed)"
     if f.caustics:
         return "; ".join([f"caustics found: {seen}"] + parts)
-    need = f"caustics move {pct(MOVING_FLOOR)} or more, and {100 * MOVING_SHARE:.0f} % or more of it"
-    return "; ".join([f"no caustics found: {seen} ({need})"] + parts)
+    return "; ".join([f"no caustics found: {f.decided_by}"] + parts)

@@ -222,11 +222,14 @@ def _light_section(light: Optional[dict], mode: Optional[str], lamp: dict) -> li
             "the camera (a pattern over the image and a fall-off with range: a lamp, vignetting), each frame's "
             "exposure, and light that moves over the seabed (caustics). " + did, "",
             "| part of the light | spread between frames |", "|---|---|",
-            f"| moving over the seabed (caustics) | {pct(light['moving'])} ({100 * light['share']:.0f} % of the "
-            "differences) |",
+            f"| moving over the seabed (caustics), frames taken from nearly the same place | {pct(light['moving'])} "
+            f"({100 * light['share']:.0f} % of the differences) |",
+            *([f"| ... frames far apart (misregistration and gloss grow there) | {pct(light['moving_far'])} |",
+               f"| the survey's noise floor for it | {pct(light['floor'])} |"] if "floor" in light else []),
             f"| fixed to the camera (over the frame) | {pct(light['camera'])} |",
             f"| exposure (frame to frame) | {pct(light['exposure'])} |", "",
-            f"{light['reason'][0].upper() + light['reason'][1:]}."]
+            f"{light['reason'][0].upper() + light['reason'][1:]}."
+            + (f" What decided: {light['decided_by']}." if light.get("decided_by") and light["caustics"] else "")]
 
 
 def _water_section(medium: dict) -> list[str]:
