@@ -372,3 +372,26 @@ def test_the_lights_decorrelation_time_is_fitted_from_its_shared_variance():
     shared = {lag: math.exp(-lag / 0.8) for lag in (0.33, 0.66, 0.99)}
     assert P.decorrelation_time(shared, 0.33) == pytest.approx(0.8, abs=1e-3)
     assert P.decorrelation_time({0.33: -0.1}, 0.33) == pytest.approx(0.033)   # gone within a frame
+
+
+def test_ambiguous_depth_two_peaks_on_texture_or_a_grazing_view():
+    """The passes abstain where the sweep finds two separate peaks as good (repetitive texture
+    matches at several depths) on a textured window, or the surface is seen at a grazing angle;
+    one clear peak, or no texture, is trusted."""
+    d, h, w = 7, 10, 12
+    one = torch.tensor([0.1, 0.3, 0.6, 0.9, 0.6, 0.3, 0.1]).view(d, 1, 1).expand(d, h, w)
+    two = torch.tensor([0.2, 0.88, 0.5, 0.3, 0.5, 0.9, 0.2]).view(d, 1, 1).expand(d, h, w)
+    textured = torch.rand(h, w, generator=torch.Generator().manual_seed(0))
+    flat = torch.full((h, w), 0.5)
+    assert bool(G.ambiguity(two, textured, 2).all())
+    assert not bool(G.ambiguity(one, textured, 2).any())
+    assert not bool(G.ambiguity(two, flat, 2).any())
+    # a plane seen head-on, and tilted 80 degrees away from the view
+    K = torch.tensor([[20.0, 0, 10], [0, 20.0, 8], [0, 0, 1]])
+    v = G.PassView(torch.zeros(16, 20, 3), torch.full((16, 20), 2.0), torch.ones(16, 20, dtype=torch.bool),
+                   torch.eye(4), K)
+    assert not bool(G.grazing(v, torch.full((16, 20), 2.0)).any())
+    u = (torch.arange(20, dtype=torch.float32) + 0.5 - 10) / 20
+    slope = math.tan(math.radians(80))
+    tilted = (2.0 / (1 - slope * u)).clamp(0.1, 100).expand(16, 20)   # z = 2 + slope * x
+    assert bool(G.grazing(v, tilted)[:, 10:12].all())

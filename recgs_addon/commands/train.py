@@ -232,6 +232,9 @@ def _plan(args, method, trainer):
     if trainer.cfg.medium != "off":
         lines.append(f"water: {'modelled' if trainer.medium is not None else 'not modelled'} "
                      f"({trainer.medium_info['reason']})")
+    overlay = trainer.data.overlay()
+    if overlay.mask is not None:
+        lines.append(f"overlay: {overlay.reason}")
     light = getattr(method, "light", None)
     if light is not None:
         lines.append(f"light: {light['reason']}" + ("" if light["caustics"] else "; training as plain 3DGS"))
@@ -328,7 +331,7 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
         "psnr_test": final.get("psnr"), "ssim_test": final.get("ssim"),
         "psnr_test_gt": final.get("psnr_gt"), "ssim_test_gt": final.get("ssim_gt"),
         "psnr_test_captured": final.get("psnr_captured"), "view_support": support, "coverage": coverage,
-        "medium": trainer.medium_summary(), "lamp": trainer.lamp_summary(),
+        "medium": trainer.medium_summary(), "lamp": trainer.lamp_summary(), "overlay": trainer.data.overlay().summary(),
         "coverage_sparse": {"median_views": plan.views_per_point, "median_passes": plan.passes_per_point},
         "plan": plan.summary(), **outputs,
         "compile": trainer.compiler.summary(), "skipped_steps": trainer.skipped_steps,

@@ -246,8 +246,10 @@ class Estimates:
             cam, photo = data.view(i, 1)
             viewmat, K = view_tensors(cam, tr.device)
             out = tr.render_output(i)
-            views.append(geometry.PassView(photo, out.depth / out.alpha.clamp_min(1e-6), out.alpha > 0.5,
-                                         viewmat, K, times.get(cam.name)))
+            covered = out.alpha > 0.5
+            keep = tr.counts(i)   # a burned-in overlay is no seabed
+            views.append(geometry.PassView(photo, out.depth / out.alpha.clamp_min(1e-6),
+                                           covered if keep is None else covered & keep, viewmat, K, times.get(cam.name)))
         pts = torch.as_tensor(data.scene.points, dtype=torch.float32, device=tr.device)
         brought = geometry.prior_geometry(views, pts)
         lit = self._even_the_light(views, ids)
@@ -266,6 +268,13 @@ class Estimates:
                               **{k: v for k, v in light.items() if k != "correlation_s"}}
             return {"estimates": None, "light": light}
         geometry.refine_geometry(views, overlap, brought, pts, check=check)
+        # where the depth is ambiguous (repetitive texture, grazing views) the passes abstain:
+        # those pixels are neither gathered nor gathered from, and keep their low-pass target
+        abstained = []
+        for v in views:
+            if v.ambiguous is not None:
+                abstained.append(float((v.ambiguous & v.covered).sum()) / max(1, int(v.covered.sum())))
+                v.covered = v.covered & ~v.ambiguous
         parts["geometry"] = time.perf_counter() - t - sum(parts.values())
         settings = passes.settings_for(light, statistic=self.ccfg.pass_statistic, min_passes=self.ccfg.pass_min)
         # with the water modelled, the frames' colours are compared at each frame's own range

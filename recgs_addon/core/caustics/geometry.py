@@ -60,6 +60,15 @@ LAYER_SWEEP = (-0.008, 0.0, 0.008)
 ALTERNATIVE_SWEEP = tuple(float(x) for x in np.linspace(-0.006, 0.006, 5))
 
 
+#: Ambiguous depth, where the passes abstain: a textured window (its log grey's spread at least
+#: TEXTURE_MIN) whose sweep has two separate peaks within UNIQUE_MARGIN of the best (repetitive
+#: texture: tiles, grids, ripples match at several depths; the uniqueness test of stereo matching),
+#: or a surface seen at a grazing angle (its normal more than GRAZING_DEG from the view ray).
+TEXTURE_MIN = 0.05
+UNIQUE_MARGIN = 0.03
+GRAZING_DEG = 75.0
+
+
 @dataclass
 class PassView:
     """One training frame as the estimator needs it."""
@@ -70,6 +79,7 @@ class PassView:
     viewmat: torch.Tensor          # (4, 4)
     K: torch.Tensor                # (3, 3)
     time: Optional[float] = None   # seconds into the survey's clip (None: a photo of its own)
+    ambiguous: Optional[torch.Tensor] = None   # (H, W) bool: covered, but the depth is not to trust
 
 
 def depth_map(v: PassView) -> torch.Tensor:
@@ -371,6 +381,39 @@ def _hypothesis(i: int, views: Sequence[PassView], neighbours: Sequence[int], ba
     return base * (1 + off), score, take
 
 
+def ambiguity(s: torch.Tensor, own: torch.Tensor, radius: int) -> torch.Tensor:
+    """(H, W) bool: pixels whose sweep scores ``s`` (D, H, W) have two separate peaks (local
+    maxima over the depths, not neighbours) within :data:`UNIQUE_MARGIN` of the best, where the
+    frame's own log grey ``own`` (H, W) is textured (its window's spread at least
+    :data:`TEXTURE_MIN`)."""
+    d = s.shape[0]
+    if d < 3:
+        return torch.zeros(s.shape[1:], dtype=torch.bool, device=s.device)
+    pad = torch.cat([torch.full_like(s[:1], -2.0), s, torch.full_like(s[:1], -2.0)])
+    peak = (s > pad[:-2]) & (s >= pad[2:])
+    close = peak & (s >= s.max(0, keepdim=True).values - UNIQUE_MARGIN)
+    idx = torch.arange(d, device=s.device).view(-1, 1, 1).expand_as(s)
+    first = torch.where(close, idx, torch.full_like(idx, d)).min(0).values
+    last = torch.where(close, idx, torch.full_like(idx, -1)).max(0).values
+    x = own.unsqueeze(0)
+    spread = (box(x * x, radius) - box(x, radius) ** 2).clamp_min(0).sqrt()[0]
+    return (last - first >= 2) & (spread >= TEXTURE_MIN)
+
+
+def grazing(v: PassView, depth: torch.Tensor) -> torch.Tensor:
+    """(H, W) bool: pixels whose surface (the normal of ``depth`` backprojected) is seen more
+    than :data:`GRAZING_DEG` from the view ray."""
+    from .consensus import backproject
+    pts = backproject(depth, v.viewmat, v.K)
+    dy, dx = torch.gradient(pts, dim=(0, 1))
+    n = torch.linalg.cross(dx, dy, dim=-1)
+    R, t = v.viewmat[:3, :3], v.viewmat[:3, 3]
+    ray = pts + (R.T @ t)     # from the camera centre -R^T t to the point
+    cos = (n * ray).sum(-1).abs() / (torch.linalg.vector_norm(n, dim=-1) * torch.linalg.vector_norm(ray, dim=-1)
+                                      ).clamp_min(1e-12)
+    return cos < math.cos(math.radians(GRAZING_DEG))
+
+
 def refine_depth(i: int, views: Sequence[PassView], neighbours: Sequence[int], offsets=SWEEP,
                  radius: int = SWEEP_RADIUS, greys: Optional[Sequence[torch.Tensor]] = None,
                  alternative: Optional[torch.Tensor] = None, layers: Sequence[torch.Tensor] = ()) -> torch.Tensor:
@@ -393,6 +436,7 @@ def refine_depth(i: int, views: Sequence[PassView], neighbours: Sequence[int], o
     greys = greys if greys is not None else [log_grey(v.photo) for v in views]
     pairs = [_pair_rays(vi, views[j]) for j in neighbours]
     s = _sweep_scores(i, views, neighbours, [prior * (1 + d) for d in offsets], radius, greys, pairs=pairs)
+    vi.ambiguous = ambiguity(s, greys[i], radius) & vi.covered
     off, s0 = _best_offset(s, offsets)
     # a pixel moves off its prior only where the texture there clearly agrees better elsewhere
     at_prior = s[int(np.argmin(np.abs(np.asarray(offsets))))]
@@ -454,6 +498,8 @@ def refine_geometry(views: Sequence[PassView], overlap: np.ndarray,
                                     alternative=None if alternatives is None else alternatives[i], layers=layers))
     for v, d in zip(views, refined):
         v.surface = d
+        steep = grazing(v, depth_map(v)) & v.covered
+        v.ambiguous = steep if v.ambiguous is None else v.ambiguous | steep
 
 
 def survey_geometry(views: Sequence[PassView], points: Optional[torch.Tensor], refine: bool = True) -> np.ndarray:

@@ -355,7 +355,10 @@ def survey_light(data, ids: Optional[Sequence[int]] = None, times: Optional[dict
 
     def frame(i):
         if i not in frames:
-            frames[i] = _frame(as_float(data.photo(i).cpu()), data.camera(i), pts, times.get(cams[i].name))
+            v = frames[i] = _frame(as_float(data.photo(i).cpu()), data.camera(i), pts, times.get(cams[i].name))
+            keep = None if v is None or not hasattr(data, "valid") else data.valid(i, *v.covered.shape)
+            if keep is not None:   # a burned-in overlay is no seabed
+                v.covered = v.covered & keep.cpu()
         return frames[i]
 
     samples, lags, kinds = [], [], []

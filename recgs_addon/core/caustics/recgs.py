@@ -156,17 +156,19 @@ RELIT_HARM_DB = 0.5
 RELIT_MAX_GAIN = 2.0
 
 
-def relit_psnr(render: torch.Tensor, photo: torch.Tensor, k: int) -> float:
+def relit_psnr(render: torch.Tensor, photo: torch.Tensor, k: int, mask: Optional[torch.Tensor] = None) -> float:
     """PSNR against ``photo`` of ``render`` lit by the light that differs between them at the
     ``k x k`` lowest frequencies (their log ratio, low-passed, its mean kept, bounded by
     :data:`RELIT_MAX_GAIN`): a score of the seabed's texture that no light over the photo
     (caustics' broad part, exposure, a lamp's cone) moves, and that needs no caustic estimate.
     The render is relit, not the photo: a photo darkened to a dark render would score the
-    blank render's error at the blank render's scale, and a blank render win."""
+    blank render's error at the blank render's scale, and a blank render win. ``mask`` (H, W)
+    bool: the pixels that count (the light is taken over them alone)."""
     render = render.clamp(0, 1)
-    light = estimate_caustics(photo, render, k, "multiplicative", dc=True)
+    light = estimate_caustics(photo, render, k, "multiplicative", dc=True,
+                              weight=None if mask is None else mask.to(photo.dtype))
     bound = math.log(RELIT_MAX_GAIN)
-    return psnr(remove_caustics(render, -light.clamp(-bound, bound), "multiplicative").clamp(0, 1), photo)
+    return psnr(remove_caustics(render, -light.clamp(-bound, bound), "multiplicative").clamp(0, 1), photo, mask)
 
 
 #: The share of a time limit the warm-up (plain 3DGS) takes at most, by estimator. The low-pass
@@ -394,7 +396,8 @@ class RecGS(Estimates, Method):
         tr = self.trainer
         ids = [i for i in tr.heldout_ids() if i in self.references]
         with tr.using(snap) if snap is not None else contextlib.nullcontext():
-            return float(np.mean([psnr(tr.render_view(i).clamp(0, 1), self.references[i].float()) for i in ids]))
+            return float(np.mean([psnr(tr.render_view(i).clamp(0, 1), self.references[i].float(), tr.counts(i))
+                                  for i in ids]))
 
     def _snapshot(self, score: Optional[float]) -> None:
         """Remember the plain model (before any C) and its held-out score: the model now, or the
@@ -541,17 +544,18 @@ class RecGS(Estimates, Method):
             for i in ids:
                 rgb, true = tr.render_pair(i)
                 photo = self.data.view(i, 1)[1]
-                cap.append(psnr(rgb, photo))
+                keep = tr.counts(i)
+                cap.append(psnr(rgb, photo, keep))
                 for k in RELIT_K:
-                    relit[k].append(relit_psnr(rgb, photo, k))
+                    relit[k].append(relit_psnr(rgb, photo, k, keep))
                 if self.references is not None and i in self.references:
-                    ref.append(psnr(rgb, self.references[i].float()))
+                    ref.append(psnr(rgb, self.references[i].float(), keep))
                 if self.gain_model is not None:
                     w = rgb.clamp(0.02, 1.0)
                     nll.append(float((w * self.gain_model(likelihood.log_ratio(photo, rgb))).mean() / w.mean()))
                 g = self.data.gt_view(i)
                 if g is not None:
-                    gt.append(psnr(true, g))
+                    gt.append(psnr(true, g, keep))
         out["psnr_captured"] = round(sum(cap) / len(cap), 4)
         for k, v in relit.items():
             out[f"psnr_relit{k}"] = round(sum(v) / len(v), 4)

@@ -30,6 +30,8 @@ def _statistic(p: dict) -> str:
 
 def _passes_row(p: dict) -> str:
     """What the pass estimator cost and drew on, in one table cell."""
+    if p.get("overrun"):
+        return f"none made: {p['overrun']}"
     if p.get("share") is None:
         return f"none made: moving light of {p.get('light_std')} log units measured between frames ({p.get('seconds')} s)"
     looks = f", {p['median_looks']:g} independent looks" if p.get("median_looks") is not None else ""
@@ -37,7 +39,9 @@ def _passes_row(p: dict) -> str:
             f"the training pixels from the passes (median {p.get('median_passes'):g} passes a pixel{looks}; "
             f"{_statistic(p)}), the rest low-pass; moving light "
             f"{p.get('light_std')} log units, frames under {p.get('pass_seconds')} s apart one pass"
-            + (f", its decorrelation time {p['light_seconds']:g} s" if p.get("light_seconds") else ""))
+            + (f", its decorrelation time {p['light_seconds']:g} s" if p.get("light_seconds") else "")
+            + (f"; the passes abstained on {100 * p['abstained']:.1f} % of the covered pixels, whose depth is "
+               "ambiguous (repetitive texture, grazing views)" if p.get("abstained") else ""))
 
 
 def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -> Path:
@@ -64,6 +68,7 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
             ("lamp", (metrics.get("lamp") or {}).get("reason") if (metrics.get("lamp") or {}).get("mode", "off") != "off"
              else None),
             ("water", (metrics.get("medium") or {}).get("reason")),
+            ("burned-in overlay", (metrics.get("overlay") or {}).get("share") and metrics["overlay"]["reason"]),
             ("caustic estimator", metrics.get("estimator") and
              f"{metrics['estimator']} ({metrics.get('estimator_why', '')})"),
             ("caustic filter size k", metrics.get("caustic_k")),

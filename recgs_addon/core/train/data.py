@@ -75,6 +75,9 @@ class TrainData:
         self._photos: dict[int, torch.Tensor] = {}     # compact, at the training size
         self._gt: dict[int, torch.Tensor] = {}
         self._levels: dict[tuple[int, int], torch.Tensor] = {}   # float16, coarser levels
+        self._overlay = None          # overlay.Overlay, found on first use (:meth:`overlay`)
+        self._overlay_size = None     # the training size it was found on
+        self._valid: dict[tuple[int, int], Optional[torch.Tensor]] = {}
 
     def camera(self, index: int, level: int = 1) -> Camera:
         """Camera ``index`` scaled to its training size at extra downscale ``level``."""
@@ -142,6 +145,38 @@ class TrainData:
         if level != 1:
             for i in self.train_ids:
                 self.view(i, level)
+
+    def overlay(self):
+        """The survey's burned-in overlay (``overlay.find_overlay``), found once on the frames of
+        its most common training size (at most ``overlay.MAX_PAIRS`` consecutive pairs by name,
+        spread over the survey, at ``overlay.OVERLAY_SIDE``)."""
+        if self._overlay is None:
+            from collections import Counter
+
+            from . import overlay as ov
+            ids = sorted(self.train_ids + self.test_ids, key=lambda i: self.scene.cameras[i].name)
+            size = Counter(self.sizes[i] for i in ids).most_common(1)[0][0]
+            ids = [i for i in ids if self.sizes[i] == size]
+            starts = list(range(len(ids) - 1))
+            if len(starts) > ov.MAX_PAIRS:
+                starts = [starts[int(k * len(starts) / ov.MAX_PAIRS)] for k in range(ov.MAX_PAIRS)]
+            w, h = size
+            f = min(1.0, ov.OVERLAY_SIDE / max(w, h))
+            hs, ws = max(1, round(h * f)), max(1, round(w * f))
+            frames = [resample(as_float(self.photo(ids[k + d])).mean(-1), hs, ws).cpu() for k in starts for d in (0, 1)]
+            self._overlay, self._overlay_size = ov.find_overlay(frames), size
+        return self._overlay
+
+    def valid(self, index: int, height: int, width: int) -> Optional[torch.Tensor]:
+        """(height, width) bool on the view's device: the pixels of view ``index`` at that size
+        that count (off the survey's burned-in overlay), or None where every pixel does."""
+        key = (index, height * 100003 + width)
+        if key not in self._valid:
+            from .overlay import mask_at
+            ov = self.overlay()
+            m = mask_at(ov, height, width) if self.sizes[index] == self._overlay_size else None
+            self._valid[key] = None if m is None else m.to(self.device)
+        return self._valid[key]
 
     def drop_level(self, level: int) -> None:
         for key in [k for k in self._levels if k[1] == level]:

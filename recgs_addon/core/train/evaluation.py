@@ -122,7 +122,14 @@ class EvaluationMixin:
         ids = self.heldout_ids()
         if not ids:
             return None
-        return float(sum(psnr(self.render_view(i).clamp(0, 1), self.data.view(i, 1)[1]) for i in ids) / len(ids))
+        return float(sum(psnr(self.render_view(i).clamp(0, 1), self.data.view(i, 1)[1], self.counts(i))
+                         for i in ids) / len(ids))
+
+    def counts(self, index: int, level: int = 1) -> Optional[torch.Tensor]:
+        """(H, W) bool: the pixels of view ``index`` at pyramid ``level`` that count in losses
+        and scores (off the survey's burned-in overlay, ``data.valid``), or None: all of them."""
+        cam = self.data.camera(index, level)
+        return self.data.valid(index, cam.height, cam.width)
 
     @torch.no_grad()
     def evaluate(self, ids: Optional[list[int]] = None) -> dict:
@@ -138,12 +145,13 @@ class EvaluationMixin:
             rgb, true = self.render_pair(i)   # true colour: what a ground truth holds
             photo = self.data.view(i, 1)[1]
             ref = self.objective.reference(i, photo, rgb)
-            ps.append(psnr(rgb, ref))
-            pc.append(ps[-1] if ref is photo else psnr(rgb, photo))
+            keep = self.counts(i)
+            ps.append(psnr(rgb, ref, keep))
+            pc.append(ps[-1] if ref is photo else psnr(rgb, photo, keep))
             ss.append(float(ssim(rgb, ref)))
             gt = self.data.gt_view(i)
             if gt is not None:
-                pg.append(psnr(true, gt))
+                pg.append(psnr(true, gt, keep))
                 sg.append(float(ssim(true, gt)))
         out = {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "psnr_captured": float(np.mean(pc))}
         if pg:

@@ -145,7 +145,13 @@ def training_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: floa
     return loss + lambda_dssim * term(render, target, weight)
 
 
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    """PSNR in dB for images in [0, 1] (inf for identical images)."""
-    mse = float(((a.double() - b.double()) ** 2).mean())
+def psnr(a: torch.Tensor, b: torch.Tensor, mask: Optional[torch.Tensor] = None) -> float:
+    """PSNR in dB for images (H, W, C) in [0, 1] (inf for identical images), over the pixels
+    where ``mask`` (H, W) bool is set (default all)."""
+    err = (a.double() - b.double()) ** 2
+    if mask is not None:
+        if not bool(mask.any()):
+            return math.inf
+        err = err[mask]
+    mse = float(err.mean())
     return math.inf if mse == 0 else -10.0 * math.log10(mse)

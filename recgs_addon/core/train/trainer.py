@@ -227,6 +227,9 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin, LampMix
         if self.forms_image:   # fit the photos as the lamp lit them and the water showed them
             out = out._replace(rgb=self.as_seen(out, cam))
         target, weight = self.objective.target(index, img, out.rgb.detach())
+        keep = self.counts(index, level)   # a burned-in overlay does not count
+        if keep is not None:
+            weight = keep.to(img.dtype) if weight is None else weight * keep
         loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight,
                              self.objective.loss_kind,
                              fast_ssim=numba_ssim.ssim_term if path == "numba" and numba_ssim.load() else None)
