@@ -170,7 +170,6 @@ def train_block(argv: list[str], out_dir: str, threads: int, stop_file: str) -> 
     its log to ``log.txt`` in ``out_dir``; resumed from the block's checkpoint where there is one
     (a retry after the worker died), skipped where the block is done."""
     import contextlib
-    import resource
 
     import torch
 
@@ -205,8 +204,8 @@ def train_block(argv: list[str], out_dir: str, threads: int, stop_file: str) -> 
         except Exception as exc:   # noqa: BLE001 - the block's own error, for the job's message
             print(f"error: {exc!r}", file=sys.stderr)
             return {"rc": 1, "error": repr(exc), "pid": os.getpid(), "resumed": resumed}
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * (1 if sys.platform == "darwin" else 1024)
-    return {"rc": rc, "pid": os.getpid(), "resumed": resumed, "peak_rss": peak}
+    from ..core.train.plan import peak_resident_bytes
+    return {"rc": rc, "pid": os.getpid(), "resumed": resumed, "peak_rss": peak_resident_bytes()}
 
 
 class _BlockEvents:

@@ -307,6 +307,7 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
     from ..core.train.coverage import COVERAGE_VIEWS, LIGHT_SECONDS, spread, surface_coverage
     from ..core.outputs.exports import write_outputs
     from ..core.outputs.report import write_run_report
+    from ..core.train.plan import peak_resident_bytes
 
     if reason != "stopped":
         trainer.decide_medium()   # auto: the water is kept where it changes the photos measurably
@@ -325,6 +326,7 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
     metrics = {
         "status": "done", "reason": reason, "iterations": trainer.step,
         "seconds": round(trainer.elapsed, 2), "job_seconds": round(time.perf_counter() - t_command, 2),
+        "peak_resident_bytes": peak_resident_bytes(),
         "gaussians": int(trainer.params["means"].shape[0]),
         "sh_degree": trainer.sh_degree,
         "test_views": [trainer.data.scene.cameras[i].name for i in trainer.data.test_ids],

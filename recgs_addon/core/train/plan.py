@@ -60,6 +60,16 @@ def resident_bytes() -> Optional[int]:
         return None
 
 
+def peak_resident_bytes() -> Optional[int]:
+    """The most resident memory this process has held so far, where the platform says (Linux,
+    macOS), else None."""
+    try:
+        import resource
+    except ImportError:   # Windows
+        return None
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * (1 if sys.platform == "darwin" else 1024)
+
+
 def available_bytes(device: str = "cpu") -> Optional[int]:
     """Memory a run can still take: on a CUDA device its free memory; on the CPU the system's
     available memory (``MemAvailable``), within a container's limit (cgroup v2 or v1) where
