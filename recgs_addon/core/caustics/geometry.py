@@ -428,7 +428,8 @@ def refine_depth(i: int, views: Sequence[PassView], neighbours: Sequence[int], o
     are too few to follow (a rock standing out of the seabed). ``layers``: more depths (H, W) (the frame's
     :func:`relief_layers`), each swept by ``LAYER_SWEEP`` where it differs from the prior and
     taken where it agrees clearly better. ``greys``: ``log_grey`` of every
-    frame, if already made. Returns the refined (H, W) depth."""
+    frame, if already made. Returns the refined (H, W) depth, and sets the frame's
+    ``ambiguous`` pixels (:func:`ambiguity` of the prior's sweep)."""
     vi = views[i]
     prior = depth_map(vi)
     if not neighbours:

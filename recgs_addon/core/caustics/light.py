@@ -230,7 +230,6 @@ class PairSamples:
     shape: tuple           # frame i's (H, W)
     colour: Optional[np.ndarray] = None   # (2, P) what the channels do not share: the log ratio of
     #                                       red and of blue, less green's (None: a grey photo)
-    baseline: float = 0.0  # the cameras' distance over the median range
 
 
 def _pair_samples(vi: PassView, vj: PassView) -> Optional[PairSamples]:
@@ -268,15 +267,14 @@ def _pair_samples(vi: PassView, vj: PassView) -> Optional[PairSamples]:
     half = 0.5 * w
     hj, wj = vj.surface.shape
     p = flat(pts)
-    ri = np.linalg.norm(p - _centre(vi.viewmat).numpy(), axis=1)
     return PairSamples(
         d=np.log(flat(b)) - np.log(flat(a)),
         xi=np.stack([(u + 0.5 - 0.5 * w) / half, (v + 0.5 - 0.5 * h) / half]),
         xj=np.stack([flat(g[..., 0]), flat(g[..., 1]) * hj / wj]),   # grid_sample coordinates, centred
-        ri=ri, rj=np.linalg.norm(p - _centre(vj.viewmat).numpy(), axis=1),
+        ri=np.linalg.norm(p - _centre(vi.viewmat).numpy(), axis=1),
+        rj=np.linalg.norm(p - _centre(vj.viewmat).numpy(), axis=1),
         texture=flat(tex), index=idx, shape=(h, w),
-        colour=None if colour is None else np.stack([flat(c) for c in colour]),
-        baseline=float(torch.linalg.vector_norm(_centre(vi.viewmat) - _centre(vj.viewmat))) / max(float(np.median(ri)), 1e-9))
+        colour=None if colour is None else np.stack([flat(c) for c in colour]))
 
 
 def _robust_var(r: np.ndarray) -> float:
