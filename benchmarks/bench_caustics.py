@@ -119,6 +119,19 @@ SURVEYS.update({
 SURVEYS.update({
     "dive-lamp": DIVE + ["--seed", "51", "--caustic-strength", "0", "--lamp"],
 })
+# The hard cases real footage brings: a tiled floor seen forward and down (pitched 45 degrees,
+# the horizon in view: repetitive texture, grazing views, open water) with a time stamp burned
+# in, under light networks and without; a grid of bars on a wet, glossy floor (highlights that
+# follow the view) with the stamp, no caustics.
+HARD = ["--views", "48", "--width", "320", "--height", "240", "--lines", "3", "--overlap", "0.8",
+        "--caustic-motion", "smooth", "--caustic-dt", "0.5", "--overlay", "--rocks", "3"]
+SURVEYS.update({
+    "tiles-networks": HARD + ["--seed", "81", "--floor", "tiles", "--pitch", "45", "--caustic-pattern", "voronoi",
+                              "--caustic-strength", "0.7"],
+    "tiles-none": HARD + ["--seed", "82", "--floor", "tiles", "--pitch", "45", "--caustic-strength", "0"],
+    "grid-gloss-none": HARD + ["--seed", "83", "--floor", "grid", "--gloss", "0.8", "--pitch", "25",
+                               "--caustic-strength", "0"],
+})
 # Every method on one density control (adc, the caustic modes' default; plain 3DGS alone
 # defaults to mcmc), so that a method's score is the method's, not its densification's.
 METHODS = {

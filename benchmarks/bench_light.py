@@ -25,8 +25,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 #: Surveys by whether they hold sunlight caustics.
 CAUSTIC = ("sample", "networks", "ridges", "broad", "mild", "weak", "dive-networks", "dive-mild", "dive-broad",
-           "dive-wander", "dive-water-networks")
-CLEAN = ("none", "dive-none", "sample-none", "dive-water", "dive-water-clear", "dive-lamp")
+           "dive-wander", "dive-water-networks", "tiles-networks")
+CLEAN = ("none", "dive-none", "sample-none", "dive-water", "dive-water-clear", "dive-lamp", "tiles-none",
+         "grid-gloss-none")
 
 
 def main(argv=None) -> int:

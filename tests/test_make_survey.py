@@ -68,6 +68,43 @@ def test_linear_to_srgb8():
     assert list(v) == [0, 10, 118, 255, 255, 0]
 
 
+def test_the_burned_in_time_stamp_is_steady_but_for_its_seconds():
+    """The overlay the generator burns in: the same pixels every shot but the seconds' digits,
+    in the top-left corner, and the found overlay (core/train/overlay.py) covers it whole."""
+    import torch
+    from recgs_addon.core.train.overlay import find_overlay
+
+    rng = np.random.default_rng(0)
+    base = rng.integers(30, 220, (240, 960, 3), dtype=np.uint8)
+    frames, stamps = [], []
+    for t in range(12):
+        img = base[:, 12 * t:12 * t + 320].copy()
+        ms.burn_time_stamp(img, 0.5 * t)
+        stamps.append(img[:16, :100].copy())
+        frames.append(torch.tensor(img.mean(-1) / 255.0, dtype=torch.float32))
+    assert all(np.array_equal(stamps[0][1:8, 1:70], s[1:8, 1:70]) for s in stamps)   # the date, hours, minutes
+    assert not np.array_equal(stamps[0], stamps[2])                              # the seconds change
+    found = find_overlay(frames)
+    assert found.mask is not None and bool(found.mask[1:12, 1:80].all()) and found.share < 0.05, found.reason
+
+
+@pytest.mark.slow
+@pytest.mark.blender
+def test_a_tiled_glossy_floor_seen_forward(tmp_path):
+    """The hard cases' options render: tiles, gloss, a forward pitch, the stamp in images/ only."""
+    pytest.importorskip("bpy")
+    oiio = pytest.importorskip("OpenImageIO")
+    out = tmp_path / "tiles"
+    cmd = [sys.executable, str(SCRIPT), "--out", str(out), "--views", "4", "--width", "96", "--height", "72",
+           "--seed", "3", "--samples", "2", "--points", "600", "--floor", "tiles", "--gloss", "0.7", "--pitch", "45",
+           "--overlay"]
+    subprocess.run(cmd, check=True, cwd=ROOT, timeout=600)
+    a = oiio.ImageBuf(str(out / "images" / "view_000.png")).get_pixels(oiio.UINT8)
+    b = oiio.ImageBuf(str(out / "clean" / "view_000.png")).get_pixels(oiio.UINT8)
+    assert (a[2:12, 2:40] == 235).any() and not (b[2:12, 2:40] == 235).all()
+    assert json.loads((out / "survey.json").read_text())["parameters"]["floor"] == "tiles"
+
+
 @pytest.mark.slow
 @pytest.mark.blender
 def test_tiny_survey_end_to_end(tmp_path):

@@ -1,8 +1,9 @@
 """Synthetic underwater seafloor survey with ground truth, rendered with Blender Cycles.
 
-Builds a procedural seabed (displaced, textured terrain; rocks; a man-made structure: a
-rusty pipe and a painted concrete block), flies a downward-looking camera over it in a
-lawnmower pattern and renders every view twice: once with moving water caustics and once
+Builds a procedural seabed (displaced, textured terrain of sand, or of square tiles or a grid
+of bars with ``--floor``, matt or wet with ``--gloss``; rocks; a man-made structure: a rusty pipe
+and a painted concrete block), flies a downward-looking camera (or, with ``--pitch``, one
+looking forward and down) over it in a lawnmower pattern and renders every view twice: once with moving water caustics and once
 without (the ground truth). It also writes the true camera poses and a sparse point cloud
 as a COLMAP model, so the dataset can be used exactly like the output of SfM.
 
@@ -14,7 +15,8 @@ Usage (bpy as a Python module, or inside Blender)::
 
 Output folder::
 
-    images/view_000.png ...   8-bit sRGB renders WITH caustics (what a camera would record)
+    images/view_000.png ...   8-bit sRGB renders WITH caustics (what a camera would record;
+                            with --overlay a time stamp burned into the top-left corner)
     clean/view_000.png  ...   the same views under the caustics' mean illumination (ground truth)
     sparse/0/               COLMAP binary model (cameras.bin, images.bin, points3D.bin) with the
                             TRUE poses and PINHOLE intrinsics, and sparse points with tracks
@@ -235,6 +237,12 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="the camera rises and sinks by this much (m) along the path: several ranges per point")
     g.add_argument("--altitude-period", type=float, default=40.0, help="views per rise and fall")
     g.add_argument("--rocks", type=int, default=7, help="number of rocks")
+    g.add_argument("--floor", choices=("sand", "tiles", "grid"), default="sand",
+                   help="the seabed: sand, square tiles (a pool, a slab), or a grid of bars (repetitive texture)")
+    g.add_argument("--gloss", type=float, default=0.0,
+                   help="0 = matt, 1 = wet and polished: highlights that follow the view")
+    g.add_argument("--overlay", action="store_true",
+                   help="burn a time stamp into the photos' top-left corner (as many cameras do)")
     g = p.add_argument_group("caustics")
     g.add_argument("--caustic-pattern", choices=CAUSTIC_PATTERNS, default="refraction", help="pattern kind")
     g.add_argument("--caustic-strength", type=float, default=0.45, help="0 = none, 1 = full contrast")
@@ -386,6 +394,32 @@ def plan_survey(args) -> tuple[Heightfield, list[Camera], dict, tuple[float, flo
     return hf, cams, path_info, terrain_size
 
 
+#: 5x3 bitmaps of the digits, ':' and '-' a time stamp is drawn with
+_GLYPHS = {"0": "111101101101111", "1": "010110010010111", "2": "111001111100111", "3": "111001111001111",
+           "4": "101101111001001", "5": "111100111001111", "6": "111100111101111", "7": "111001001001001",
+           "8": "111101111101111", "9": "111101111001111", ":": "000010000010000", "-": "000000111000000"}
+
+
+def burn_time_stamp(img: np.ndarray, seconds: float) -> None:
+    """Draw ``2026-01-01 hh:mm:ss`` in white on a dark band into ``img`` (H, W, 3 uint8)'s top-left
+    corner, in place: the overlay a camera burns in. Its seconds change from shot to shot."""
+    h, w = img.shape[:2]
+    s = max(1, round(w / 320))   # glyph pixel size
+    t = int(seconds)
+    text = f"2026-01-01 {10 + t // 3600:02d}:{t // 60 % 60:02d}:{t % 60:02d}"
+    x0, y0 = 2 * s, 2 * s
+    img[y0 - s:y0 + 6 * s, x0 - s:x0 + 4 * s * len(text)] = 20
+    for k, ch in enumerate(text):
+        bits = _GLYPHS.get(ch)
+        if bits is None:
+            continue
+        for r in range(5):
+            for c in range(3):
+                if bits[3 * r + c] == "1":
+                    y, x = y0 + r * s, x0 + 4 * s * k + c * s
+                    img[y:y + s, x:x + s] = 235
+
+
 def render_views(args, out: Path, cams: list[Camera], rig: CausticRig, cam_ob, shots: list[dict]):
     """Render every view with and without caustics, put the water (if any) in front of the photo;
     write the PNGs. Returns (depths, sRGB8 images the sparse points take their colours from)."""
@@ -412,6 +446,8 @@ def render_views(args, out: Path, cams: list[Camera], rig: CausticRig, cam_ob, s
                 lin_c = apply_water(lin_c, rng, water)
                 shots[j]["range_m"] = [float(np.percentile(rng, 1)), float(np.percentile(rng, 99))]
             img_c = linear_to_srgb8(lin_c)
+            if args.overlay:
+                burn_time_stamp(img_c, args.caustic_dt * j)
             write_png(out / "images" / cam.name, img_c)
             if args.clean:
                 write_png(out / "clean" / cam.name, img_g)

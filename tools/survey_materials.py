@@ -182,8 +182,10 @@ def add_caustic_images(rig: CausticRig, gains: list[np.ndarray]) -> list[dict]:
     return stats
 
 
-def _seabed_material(name: str, rig: CausticRig, build) -> object:
-    """Material whose base colour (from ``build(nb) -> (colour, roughness, normal)``) is x caustic gain."""
+def _seabed_material(name: str, rig: CausticRig, build, gloss: float = 0.0) -> object:
+    """Material whose base colour (from ``build(nb) -> (colour, roughness, normal)``) is x caustic
+    gain. ``gloss`` in [0, 1]: a wet, polished surface (roughness towards 0.1, specular up), whose
+    highlights follow the view, not the light's motion."""
     bpy = _bpy()
     mat = bpy.data.materials.new(name)
     nt = mat.node_tree
@@ -195,15 +197,15 @@ def _seabed_material(name: str, rig: CausticRig, build) -> object:
     base = nb.vmul(colour, g.outputs[0])
     bsdf = nb.node("ShaderNodeBsdfPrincipled")
     nb._set(bsdf.inputs["Base Color"], base)
-    nb._set(bsdf.inputs["Roughness"], rough)
-    nb._set(bsdf.inputs["Specular IOR Level"], 0.25)
+    nb._set(bsdf.inputs["Roughness"], rough if not gloss else (1 - gloss) * rough + gloss * 0.1)
+    nb._set(bsdf.inputs["Specular IOR Level"], 0.25 + 0.75 * gloss)
     nb._set(bsdf.inputs["Normal"], normal)
     out = nb.node("ShaderNodeOutputMaterial")
     nb.links.new(bsdf.outputs[0], out.inputs["Surface"])
     return mat
 
 
-def sand_material(rig: CausticRig, seed: int):
+def sand_material(rig: CausticRig, seed: int, gloss: float = 0.0):
     """Sand / sediment: patchy colours, pebbles with dark crevices, grain, detritus, ripples."""
     def build(nb: NodeBuilder):
         p = nb.coords("Object")
@@ -245,7 +247,30 @@ def sand_material(rig: CausticRig, seed: int):
         height = nb.math("MULTIPLY_ADD", nb.noise(p, 25.0, detail=2), 0.5, rip)   # ripples + grain
         normal = nb.bump(height, 0.4, 0.015)
         return col, 0.9, normal
-    return _seabed_material("Sand", rig, build)
+    return _seabed_material("Sand", rig, build, gloss)
+
+
+def tile_material(rig: CausticRig, size: float, grout: float, gloss: float = 0.0):
+    """A floor of square tiles ``size`` metres wide (a pool, a harbour's slab) with grout lines
+    ``grout`` of a tile wide, or (grout near 0.5) a grid of bars over sand-coloured ground: the
+    repetitive texture a plane sweep can match a tile off."""
+    def build(nb: NodeBuilder):
+        p = nb.coords("Object")
+        brick = nb.node("ShaderNodeTexBrick", offset=0.0, squash=1.0)
+        nb.links.new(p, brick.inputs["Vector"])
+        brick.inputs["Scale"].default_value = 1.0
+        brick.inputs["Brick Width"].default_value = size
+        brick.inputs["Row Height"].default_value = size
+        brick.inputs["Mortar Size"].default_value = grout * size
+        brick.inputs["Mortar Smooth"].default_value = 0.1
+        brick.inputs["Color1"].default_value = (0.20, 0.42, 0.55, 1.0)
+        brick.inputs["Color2"].default_value = (0.16, 0.36, 0.50, 1.0)
+        brick.inputs["Mortar"].default_value = (0.75, 0.74, 0.68, 1.0)
+        col = nb.vmul(brick.outputs["Color"], nb.map_range(nb.noise(p, 30.0, detail=2), 0.3, 0.7, 0.85, 1.1))
+        dirt = nb.map_range(nb.noise(p, 1.5, detail=3), 0.55, 0.65, 0.0, 0.5)
+        col = nb.mix(dirt, col, (0.35, 0.33, 0.25, 1.0))
+        return col, 0.6, nb.bump(brick.outputs["Fac"], 0.2, 0.005)
+    return _seabed_material("Tiles", rig, build, gloss)
 
 
 def rock_material(rig: CausticRig, name: str, palette, crust):

@@ -16,7 +16,7 @@ import numpy as np
 
 from survey_geometry import Heightfield   # (puts the repository on sys.path for recgs_addon)
 from survey_materials import (_bpy, build_caustic_group, concrete_material, rock_material, rust_material,
-                              sand_material)
+                              sand_material, tile_material)
 
 from recgs_addon.core.model.cameras import Camera, blender_matrix_from_pose
 
@@ -351,8 +351,13 @@ def build_scene(args, hf: Heightfield, cams: list[Camera], terrain_size, light_d
     bpy = _bpy()
     rng = np.random.default_rng([args.seed, 3])
     rig = build_caustic_group(light_dir, args.caustic_scale)
-    sand = sand_material(rig, args.seed)
-    terrain = make_terrain(hf, terrain_size, 0.05, sand)
+    floor = getattr(args, "floor", "sand")
+    gloss = getattr(args, "gloss", 0.0)
+    if floor == "sand":
+        ground = sand_material(rig, args.seed, gloss)
+    else:   # tiles of 0.3 m with thin grout, or a grid of bars 0.3 m apart
+        ground = tile_material(rig, 0.3, 0.06 if floor == "tiles" else 0.4, gloss)
+    terrain = make_terrain(hf, terrain_size, 0.05, ground)
     centres = np.array([c.center[:2] for c in cams])
     half = 0.35 * 2 * args.altitude * math.tan(math.radians(args.hfov) / 2)   # ~ 0.7 x half footprint
     lo, hi = centres.min(0) - half, centres.max(0) + half                     # area seen by the survey

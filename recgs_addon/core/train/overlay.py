@@ -5,7 +5,7 @@ of training, the light finding, the caustic estimates and the scores.
 Over frames in their order (names sort in time for clips and numbered photos), a scene pixel
 changes from one frame to the next as the camera moves; an overlay's does not. A pixel is an
 overlay where its median change over consecutive frames is below :data:`STATIC_RATIO` of the
-frame's typical change, and it is either textured (text, a logo: the median frame's gradient at
+frame's typical change, as it is for most of its 3x3 neighbourhood, and it is either textured (text, a logo: the median frame's gradient at
 least :data:`CONTRAST`) or dark (below :data:`DARK`: corners and margins no light reaches). The
 found pixels grow by :data:`MARGIN` of the width, which covers a time stamp's changing digits
 beside its steady ones. Where the frames hardly change (a camera at rest), or the static part
@@ -67,7 +67,11 @@ def find_overlay(frames: Sequence[torch.Tensor]) -> Overlay:
         return Overlay(None, 0.0, len(frames), "the frames hardly change: no overlay looked for")
     still = g.median(0).values
     gy, gx = torch.gradient(still)
-    static = (change < STATIC_RATIO * typical) & ((torch.sqrt(gx * gx + gy * gy) > CONTRAST) | (still < DARK))
+    still_px = (change < STATIC_RATIO * typical).float()
+    # most of its 3x3 neighbourhood still too: a lone pixel of a fine moving texture can change
+    # little by chance
+    still_px = F.avg_pool2d(still_px[None, None], 3, stride=1, padding=1, count_include_pad=False)[0, 0] >= 0.6
+    static = still_px & (change < STATIC_RATIO * typical) & ((torch.sqrt(gx * gx + gy * gy) > CONTRAST) | (still < DARK))
     if not bool(static.any()):
         return Overlay(None, 0.0, len(frames), "no burned-in overlay found")
     r = max(1, round(MARGIN * still.shape[1]))
