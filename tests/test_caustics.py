@@ -202,6 +202,33 @@ def test_passes_estimator_removes_the_caustics_and_judges_by_its_references(caus
     assert cleaned > captured + 0.5, (captured, cleaned)   # +0.8 dB measured (its light is not a seabed's)
 
 
+def test_passes_on_half_size_frames_give_full_size_targets(caustic_scene):
+    """Where the caustic work fits the time limit only on smaller frames, the estimator works on
+    frames of half the size and brings each target back by the light it takes off: full-size
+    targets and references, the photo's own detail kept, still closer to the ground truth than
+    the photos."""
+    from recgs_addon.core.caustics import estimators
+
+    m = make(caustic_scene, estimator="passes", iterations=1, warmup=1, recurrence_steps=1)
+    m.pass_scale = 2
+    g = m._make_pass_estimates()
+    assert g["estimates"] is not None and m.pass_info["scale"] == 2
+    assert 0.0 <= m.pass_info["abstained"] < 0.5   # the share of pixels whose depth was ambiguous
+    ids = m.data.train_ids
+    for i in ids:
+        h, w = m.data.view(i)[1].shape[:2]
+        assert g["estimates"][i].shape == (h, w, 3) and g["weights"][i].shape == (h, w)
+    assert all(r.shape == m.data.view(i)[1].shape for i, r in m.references.items())
+    captured = np.mean([psnr(m.data.view(i)[1], m.data.gt_view(i)) for i in ids])
+    lifted = np.mean([psnr(estimators.passes.blend(g["estimates"][i].float(), g["weights"][i].float(),
+                                                   m.data.view(i)[1]), m.data.gt_view(i)) for i in ids])
+    assert lifted > captured + 0.5, (captured, lifted)
+    # the plan: work that fits only smaller frames is done on them
+    full = m.planned_work(1)
+    assert m.fit_work(full.seconds / 0.5 * 0.6, None) is None and m.pass_scale == 2   # 1.2 x the share: half size
+    assert m.planned_work().seconds == pytest.approx(full.seconds / 4, rel=0.1)
+
+
 def test_passes_rounds_render_only_the_views_that_follow_the_model(caustic_scene, monkeypatch):
     """A training view whose target the passes make on (nearly) all its pixels does not depend on
     the model: later rounds keep its estimate rather than render the view again; the others are

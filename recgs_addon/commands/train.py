@@ -150,8 +150,6 @@ def run_train(args) -> int:
         # every image the run uses is read now, so a file that does not decode stops the job
         # before it writes anything (training would read them all anyway; they stay cached)
         trainer.data.load_all(trainer.level(), on_image=_reading_progress(time.perf_counter()))
-        plan = _plan(args, method, trainer)
-        trainer.start_clock(t_command)
         from ..core.train.water import DECIDE_VIEWS
 
         # what _finish renders: held-out views (outputs, final scores), every training view
@@ -164,6 +162,8 @@ def run_train(args) -> int:
         # and the images it writes: held-out renders, the method's, the true-colour photos
         trainer.finishing_writes = lambda: (2 * n_test + method.finishing_images()
                                             + (2 * n_train if trainer.forms_image else 0))
+        plan = _plan(args, method, trainer)
+        trainer.start_clock(t_command)
     except RecGSError as exc:
         return fail(str(exc))
 
@@ -227,7 +227,22 @@ def _plan(args, method, trainer):
                     work=method.planned_work())
     # the caustic work within its share of the time limit and the memory training leaves
     room = None if plan.available_bytes is None else plan.available_bytes - (plan.start_bytes or plan.peak_bytes)
-    plan.keep_work(method.fit_work(trainer.time_limit_s, room))
+    plan.keep_work(method.fit_work(trainer.time_limit_s, room), method.planned_work(),
+                   getattr(method, "pass_scale", 1))
+    # one render timed now, so that the time limit keeps room for the finishing renders from the
+    # first step (before, the first held-out evaluation measured it: a slow step's run went
+    # without a reserve until then)
+    trainer.render_output((trainer.data.test_ids or trainer.data.train_ids)[0])
+    finish = trainer.finishing_estimate()
+    limit_s = trainer.time_limit_s
+    if finish is not None and limit_s is not None:
+        from ..core.train.progress import FINISH_SHARE
+        line = f"finishing: about {finish:.0f} s of renders for the outputs and scores"
+        if finish > FINISH_SHARE * limit_s:
+            line += (f", more than {100 * FINISH_SHARE:.0f} % of the {limit_s:.0f}-s limit: the job will end about "
+                     f"{finish - FINISH_SHARE * limit_s:.0f} s late; a limit of {finish / FINISH_SHARE / 60:.1f} minutes "
+                     "or a lower resolution fits it")
+        plan.notes.append(line)
     lines = plan.lines()
     if trainer.cfg.medium != "off":
         lines.append(f"water: {'modelled' if trainer.medium is not None else 'not modelled'} "
@@ -309,24 +324,37 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
     from ..core.outputs.report import write_run_report
     from ..core.train.plan import peak_resident_bytes
 
+    t = [time.perf_counter()]
+    parts: dict = {}
+
+    def took(name: str) -> None:   # the finishing's parts, timed (metrics.json: finish_seconds)
+        now = time.perf_counter()
+        parts[name] = round(now - t[0], 2)
+        t[0] = now
     if reason != "stopped":
         trainer.decide_medium()   # auto: the water is kept where it changes the photos measurably
     checkpoint(trainer)
+    took("checkpoint")
     outputs = write_outputs(method, out)
+    took("outputs")
     if reason == "stopped":
         emit("done", status="cancelled", reason=f"received {stop.received}", iteration=trainer.step,
              checkpoint=str(ckpt_path))
         print(f"stopped by {stop.received} at iteration {trainer.step}; checkpoint saved", file=sys.stderr)
         return 0
     final = trainer.evaluate()
+    took("evaluation")
     support = support_summary(view_support(trainer))
+    took("view_support")
     light_s = (getattr(method, "pass_info", None) or {}).get("light_seconds") or LIGHT_SECONDS   # measured, where it was
     coverage = surface_coverage(trainer, source_ids=spread(trainer.data.train_ids, COVERAGE_VIEWS),
                                 light_seconds=light_s).summary()
+    took("coverage")
     metrics = {
         "status": "done", "reason": reason, "iterations": trainer.step,
         "seconds": round(trainer.elapsed, 2), "job_seconds": round(time.perf_counter() - t_command, 2),
-        "peak_resident_bytes": peak_resident_bytes(),
+        "peak_resident_bytes": peak_resident_bytes(), "finish_seconds": parts,
+        "reserve_seconds": round(trainer.finishing_reserve(), 2),
         "gaussians": int(trainer.params["means"].shape[0]),
         "sh_degree": trainer.sh_degree,
         "test_views": [trainer.data.scene.cameras[i].name for i in trainer.data.test_ids],

@@ -12,9 +12,11 @@ figure from the machine the constant was measured on to this one::
     bytes   = BYTES_PER_PIXEL * pixels
 
 Measured (the estimator run whole after a short warm-up, ``benchmarks/bench_pass_cost.py``):
-8,500-12,200 probe units a megapixel and 307-407 bytes a pixel at its peak over what the job
-held before, on the README's dive survey (64 frames, 256x192), a tiled pool (36 photos, 640x342)
-and a reef clip (29 frames, 640x360); the constants are the largest, rounded up.
+1,099-1,218 probe units a megapixel and 295-434 bytes a pixel at its peak over what the job held
+before, on the README's dive survey (64 frames, 256x192; on one thread and on two), a tiled pool
+(36 photos, 640x342) and a reef clip (29 frames, 640x360); the constants are the largest,
+rounded up. The probe is large enough to use the machine's threads as the estimator does (a
+small one ran faster on one thread than on two, and told the time of neither).
 """
 from __future__ import annotations
 
@@ -28,13 +30,13 @@ import torch.nn.functional as F
 from .geometry import zncc
 
 #: The probe's image (pixels), and how many times its work is repeated (the fastest counts).
-PROBE_SIZE = (120, 160)
-PROBE_REPEATS = 7
+PROBE_SIZE = (480, 640)
+PROBE_REPEATS = 5
 #: Probe units a megapixel of the frames the estimator reads (training and held-out).
-UNITS_PER_MEGAPIXEL = 12_500
+UNITS_PER_MEGAPIXEL = 1_300
 #: Peak memory a pixel of those frames (photos, depths, the sweep's scores, the gathered
 #: samples, each frame's statistics and estimates).
-BYTES_PER_PIXEL = 420
+BYTES_PER_PIXEL = 460
 
 _PROBE: dict = {}
 

@@ -241,18 +241,19 @@ class Estimates:
         tr, data = self.trainer, self.data
         ids = sorted(data.train_ids + data.test_ids)
         times = read_frame_times(data.scene.scene_dir) or {}
+        scale = getattr(self, "pass_scale", 1)   # the frames at 1 / scale of the training size
         views = []
         for i in ids:
-            cam, photo = data.view(i, 1)
+            cam, photo = data.view(i, scale)
             viewmat, K = view_tensors(cam, tr.device)
-            out = tr.render_output(i)
+            out = tr.render_output(i, level=scale)
             covered = out.alpha > 0.5
-            keep = tr.counts(i)   # a burned-in overlay is no seabed
+            keep = tr.counts(i, scale)   # a burned-in overlay is no seabed
             views.append(geometry.PassView(photo, out.depth / out.alpha.clamp_min(1e-6),
                                            covered if keep is None else covered & keep, viewmat, K, times.get(cam.name)))
         pts = torch.as_tensor(data.scene.points, dtype=torch.float32, device=tr.device)
         brought = geometry.prior_geometry(views, pts)
-        lit = self._even_the_light(views, ids)
+        lit = self._even_the_light(views, ids, scale)
         overlap = geometry.overlap_matrix(views)
         pos = {i: n for n, i in enumerate(ids)}
         train, test = [pos[i] for i in data.train_ids], [pos[i] for i in data.test_ids]
@@ -280,17 +281,19 @@ class Estimates:
         # with the water modelled, the frames' colours are compared at each frame's own range
         est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train, water=water,
                                                check=check)
-        est = [_relit(e, lit, k) for e, k in zip(est, train)]
+        est = [self._lift(_relit(e, lit, k), i, scale) for e, k, i in zip(est, train, data.train_ids)]
+        wts = [_resize(w, *data.sizes[i][::-1]) for w, i in zip(wts, data.train_ids)]
         parts["targets"] = time.perf_counter() - t - sum(parts.values())
         if test:
             refs, _ = passes.pass_targets(views, settings, ids=test, overlap=overlap, sources=train, gains=info["gains"],
                                           water=water, check=check)
-            refs = [_relit(r, lit, k) for r, k in zip(refs, test)]
+            refs = [self._lift(_relit(r, lit, k), i, scale) for r, k, i in zip(refs, test, data.test_ids)]
             self.references = {i: r.half() for i, r in zip(data.test_ids, refs)}
             tr.best_by = "psnr"   # the references do not follow the model
         seconds = round(time.perf_counter() - t, 2)
         parts["references"] = seconds - sum(parts.values())
         self.pass_info = {"median_passes": float(np.median(info["passes"])), "share": round(float(np.mean(info["share"])), 4),
+                          "scale": scale, "abstained": round(float(np.mean(abstained)), 4) if abstained else 0.0,
                           "part_seconds": {k: round(v, 2) for k, v in parts.items()},
                           "median_looks": round(float(np.median(info["looks"])), 2), "statistic": settings.statistic,
                           "pass_seconds": settings.pass_seconds, "seconds": seconds,
@@ -301,7 +304,21 @@ class Estimates:
                 "weights": {i: w.half() for i, w in zip(data.train_ids, wts)}, "light": light,
                 "shares": dict(zip(data.train_ids, info["share"]))}
 
-    def _even_the_light(self, views: list, ids: list[int]) -> Optional[list]:
+    def _lift(self, estimate: torch.Tensor, index: int, scale: int) -> torch.Tensor:
+        """A frame's caustic-free estimate made at 1 / ``scale`` of its training size, brought to
+        that size: the light it takes off (its ratio to the photo at that size, in linear light)
+        put on the full-size photo. The light is smooth beside the texture (caustic cells span
+        tens of pixels), so the photo keeps its own detail."""
+        if scale == 1:
+            return estimate
+        small = srgb_to_linear(self.data.view(index, scale)[1].clamp(0, 1))
+        ratio = srgb_to_linear(estimate.clamp(0, 1)) / small.clamp_min(1e-3)
+        photo = self.data.view(index, 1)[1]
+        h, w = photo.shape[:2]
+        full = _resize(ratio.clamp(0, 4).permute(2, 0, 1), h, w).permute(1, 2, 0)
+        return linear_to_srgb((srgb_to_linear(photo.clamp(0, 1)) * full).clamp(0, 1))
+
+    def _even_the_light(self, views: list, ids: list[int], scale: int = 1) -> Optional[list]:
         """Where the survey shows light fixed to the camera (the trainer's lamp, or the light
         finding's pattern where it varies by :data:`.light.CAMERA_FLOOR` or more), every frame's
         photo is evened by it before frames are compared: a frame's vignetted edge is dark because
@@ -319,7 +336,7 @@ class Estimates:
         gains = []
         with torch.no_grad():
             for v, i in zip(views, ids):
-                cam = self.data.view(i, 1)[0]
+                cam = self.data.camera(i, scale)
                 lg = lamp.log_gain(cam.width, cam.height, cam.cx, cam.cy, geometry.depth_map(v) * tr.ray_len(cam))
                 v.photo = linear_to_srgb((srgb_to_linear(v.photo.clamp(0, 1)) / torch.exp(lg).unsqueeze(-1)).clamp(0, 1))
                 gains.append(lg)
@@ -362,6 +379,16 @@ class Estimates:
             views.append(dict(photo=photo, depth=out.depth, alpha=out.alpha, viewmat=viewmat, K=K))
         targets, _, _ = consensus_targets(views, self.ccfg.consensus_stat, self.ccfg.consensus_q)
         return {i: v["photo"] - t for i, v, t in zip(ids, views, targets)}
+
+
+def _resize(x: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(..., h, w) bilinearly to (..., height, width) (as it is where the size matches)."""
+    if tuple(x.shape[-2:]) == (height, width):
+        return x
+    lead = x.shape[:-2]
+    y = torch.nn.functional.interpolate(x.reshape(1, -1, *x.shape[-2:]).float(), size=(height, width),
+                                        mode="bilinear", align_corners=False)
+    return y.reshape(*lead, height, width).to(x.dtype)
 
 
 class _Overrun(Exception):

@@ -188,6 +188,9 @@ WARMUP_MIN_STEPS = 100
 #: plan's estimate, or the clock while it runs) the run trains as plain 3DGS, so that training
 #: keeps the rest of the limit.
 CAUSTIC_TIME_SHARE = 0.5
+#: The frames the pass estimator may work on to fit that share: the training size divided by
+#: each of these in turn.
+PASS_SCALES = (1, 2, 4)
 
 #: How far the caustic-free model may fall below the plain one in PSNR against the held-out
 #: photos as captured and still be kept when the likelihood prefers it: a held-out photo's own
@@ -225,8 +228,10 @@ class RecGS(Estimates, Method):
         #: the caustic work is planned to take (``plan.py`` sets it; the warm-up's share leaves it out)
         self.warmup_start: Optional[float] = None
         self.planned_seconds = 0.0
-        #: seconds the pass estimator may run before it is given up (``fit_work``; None: no limit)
+        #: seconds the pass estimator may run before it is given up (``fit_work``; None: no limit),
+        #: and the frames' size it works at (the training size divided by this)
         self.pass_deadline: Optional[float] = None
+        self.pass_scale = 1
         #: the plain model the recurrences start from (``score``: held-out PSNR against the
         #: captured images; ``params``, ``sh_degree``), and rounds in a row that scored worse
         self.plain: Optional[dict] = None
@@ -591,34 +596,41 @@ class RecGS(Estimates, Method):
             return 0
         return 3 * len(self.data.test_ids) + sum(not self._model_free(i) for i in self.data.train_ids)
 
-    def planned_work(self):
+    def planned_work(self, scale: Optional[int] = None):
         """The pass estimator's expected cost (``cost.py``), where it will run: every training
-        and held-out frame at the training resolution."""
+        and held-out frame at 1 / ``scale`` of the training size (default: the run's
+        ``pass_scale``)."""
         if self.dropped or not self._passes:
             return None
         from .cost import pass_cost
-        return pass_cost([self.data.sizes[i] for i in self.data.train_ids + self.data.test_ids])
+        scale = self.pass_scale if scale is None else scale
+        sizes = [self.data.camera(i, scale) for i in self.data.train_ids + self.data.test_ids]
+        return pass_cost([(c.width, c.height) for c in sizes])
 
     def fit_work(self, time_limit_s, room_bytes) -> Optional[str]:
         """The caustic work keeps at most :data:`CAUSTIC_TIME_SHARE` of a time limit and fits the
-        memory the plan leaves; otherwise the run trains as plain 3DGS and says why."""
-        work = self.planned_work()
-        if work is None:
+        memory the plan leaves: at the training resolution where it can, else on frames of half or
+        a quarter of it (:data:`PASS_SCALES`; the targets are brought back to full size by the
+        light they take off, ``Estimates._lift``). Where none fits the run trains as plain 3DGS
+        and says why."""
+        if self.planned_work() is None:
             return None
         why = None
-        if time_limit_s is not None and work.seconds > CAUSTIC_TIME_SHARE * time_limit_s:
-            why = (f"the caustic work would take about {work.seconds:.0f} s here ({work.megapixels:.1f} megapixels of "
-                   f"frames), more than {100 * CAUSTIC_TIME_SHARE:.0f} % of the {time_limit_s:.0f}-s limit")
-        elif room_bytes is not None and work.bytes > room_bytes:
-            why = (f"the caustic work would need about {work.bytes / 2 ** 30:.1f} GB of memory here "
-                   f"({work.megapixels:.1f} megapixels of frames), more than the {max(0, room_bytes) / 2 ** 30:.1f} GB "
-                   "left beside training")
-        if why is None:
-            self.planned_seconds = work.seconds
-            self.pass_deadline = None if time_limit_s is None else CAUSTIC_TIME_SHARE * time_limit_s
-            return None
-        self._drop(f"{why}: trained as plain 3DGS (a longer limit, a lower resolution or fewer photos would fit it)",
-                   restore=False)
+        for scale in PASS_SCALES:
+            work = self.planned_work(scale)
+            if time_limit_s is not None and work.seconds > CAUSTIC_TIME_SHARE * time_limit_s:
+                why = (f"the caustic work would take about {work.seconds:.0f} s here ({work.megapixels:.1f} megapixels "
+                       f"of frames), more than {100 * CAUSTIC_TIME_SHARE:.0f} % of the {time_limit_s:.0f}-s limit")
+            elif room_bytes is not None and work.bytes > room_bytes:
+                why = (f"the caustic work would need about {work.bytes / 2 ** 30:.1f} GB of memory here "
+                       f"({work.megapixels:.1f} megapixels of frames), more than the "
+                       f"{max(0, room_bytes) / 2 ** 30:.1f} GB left beside training")
+            else:
+                self.pass_scale, self.planned_seconds = scale, work.seconds
+                self.pass_deadline = None if time_limit_s is None else CAUSTIC_TIME_SHARE * time_limit_s
+                return None
+        self._drop(f"{why}, even on frames of 1/{PASS_SCALES[-1]} the size: trained as plain 3DGS (a longer limit, "
+                   "a lower resolution or fewer photos would fit it)", restore=False)
         return why
 
     def state_bytes(self) -> int:

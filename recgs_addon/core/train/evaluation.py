@@ -80,12 +80,13 @@ class EvaluationMixin:
 
     # --- evaluation ---------------------------------------------------------------------
     @torch.no_grad()
-    def render_output(self, index: int, seen: bool = True):
+    def render_output(self, index: int, seen: bool = True, level: int = 1):
         """The whole :class:`~..render.rasterizer.RenderOutput` (rgb, alpha, depth, ...) of
-        camera ``index`` at the training resolution: its ``rgb`` as the camera sees it through
-        the water (``seen``; what the photos hold) or the seabed's true colour."""
+        camera ``index`` at the training resolution (``level``: that divided by it): its ``rgb``
+        as the camera sees it through the water (``seen``; what the photos hold) or the seabed's
+        true colour."""
         t = time.perf_counter()
-        cam, _ = self.data.view(index, 1)
+        cam = self.data.camera(index, level)
         viewmat, K = view_tensors(cam, self.device)
         p = self.params
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
@@ -94,7 +95,8 @@ class EvaluationMixin:
         if seen and self.forms_image:
             out = out._replace(rgb=self.as_seen(out, cam))
         dt = time.perf_counter() - t
-        self._render_s = dt if self._render_s is None else 0.8 * self._render_s + 0.2 * dt
+        if level == 1:   # the finishing's renders are at the training resolution
+            self._render_s = dt if self._render_s is None else 0.8 * self._render_s + 0.2 * dt
         return out
 
     def render_view(self, index: int, seen: bool = True) -> torch.Tensor:

@@ -164,16 +164,23 @@ class RunPlan:
     work_bytes: Optional[int] = None       # ... and its peak memory beside the model at its start
     work_megapixels: Optional[float] = None   # ... over this many megapixels of frames
     work_given_up: Optional[str] = None    # why that work will not be done (it does not fit)
+    work_scale: int = 1                    # ... done on frames of 1 / this of the training size
 
     def summary(self) -> dict:
         return asdict(self)
 
-    def keep_work(self, given_up: Optional[str]) -> None:
+    def keep_work(self, given_up: Optional[str], work=None, scale: int = 1) -> None:
         """The caustic work the plan holds is done (``given_up`` None: its memory, beside the
-        model at its start, counts in the peak: it runs early in the run) or not (why)."""
+        model at its start, counts in the peak: it runs early in the run), as ``work`` (its
+        cost as the method will do it, on frames of 1 / ``scale`` the training size), or not
+        (why)."""
         if given_up is not None:
             self.work_given_up = given_up
-        elif self.work_bytes is not None:
+            return
+        if work is not None:
+            self.work_seconds, self.work_bytes, self.work_megapixels = work.seconds, work.bytes, work.megapixels
+            self.work_scale = scale
+        if self.work_bytes is not None:
             self.peak_bytes = max(self.peak_bytes, (self.start_bytes or 0) + self.work_bytes)
 
     def lines(self) -> list[str]:
@@ -203,7 +210,9 @@ class RunPlan:
             out.append(f"caustic work: not done: {self.work_given_up}")
         elif self.work_seconds is not None:
             out.append(f"caustic work: about {self.work_seconds:.0f} s and {gb(self.work_bytes)} of memory "
-                       f"({self.work_megapixels:.1f} megapixels of frames)")
+                       f"({self.work_megapixels:.1f} megapixels of frames"
+                       + (f", at 1/{self.work_scale} of the training size to fit the time limit)" if self.work_scale > 1
+                          else ")"))
         out.extend(self.notes)
         return out
 
@@ -294,10 +303,15 @@ def coverage_advice(views: float, looks: float) -> str:
             "of a video; expect caustics to stay partly in the model")
 
 
+#: The plan's step timing stops once the timed passes add up to this many seconds.
+TIMING_SECONDS = 2.0
+
+
 def time_steps(trainer, steps: int) -> tuple[Optional[float], str]:
     """Seconds per 1,000 training steps at the training resolution with the model as it is,
-    timed over ``steps`` forward and backward passes after one untimed pass (gradients
-    dropped, so nothing changes), and the path they ran on."""
+    timed over ``steps`` forward and backward passes (fewer once they add up to
+    :data:`TIMING_SECONDS`) after one untimed pass (gradients dropped, so nothing changes), and
+    the path they ran on."""
     from .trainer import PARAM_NAMES
 
     if steps < 1:
@@ -310,6 +324,8 @@ def time_steps(trainer, steps: int) -> tuple[Optional[float], str]:
         path = trainer.dry_step(ids[k % len(ids)])
         if k:
             times.append(time.perf_counter() - t0)
+            if sum(times) >= TIMING_SECONDS:   # slow steps: one or two tell enough
+                break
     for name in PARAM_NAMES:
         trainer.params[name].grad = None
     return 1000 * float(sorted(times)[len(times) // 2]), "numba" if path == "numba" else (

@@ -10,6 +10,10 @@ from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 
+#: The most of a time limit kept for what follows training.
+FINISH_SHARE = 0.4
+
+
 @dataclass
 class Progress:
     phase: str
@@ -36,15 +40,23 @@ class ProgressMixin:
         are read."""
         return None if self.cfg.max_minutes is None else 60.0 * self.cfg.max_minutes
 
+    def finishing_estimate(self) -> Optional[float]:
+        """Seconds what follows training will take: ``finishing_renders()`` at the latest render
+        time measured (the job times one before the first step; held-out evaluations follow it)
+        and ``finishing_writes()`` output images at ``write_s`` each (the job measures it); None
+        before a render was timed."""
+        if self._render_s is None:
+            return None
+        return self.finishing_renders() * self._render_s + self.finishing_writes() * self.write_s
+
     def finishing_reserve(self) -> float:
-        """Seconds the time limit keeps for what follows training: ``finishing_renders()`` at the
-        latest render time measured (a held-out evaluation measures it) and ``finishing_writes()``
-        output images at ``write_s`` each (the job measures it), at most a quarter of the
-        limit. The whole job then ends near its limit, finishing included."""
-        if self._render_s is None or self.time_limit_s is None:
+        """Seconds the time limit keeps for what follows training (:meth:`finishing_estimate`),
+        at most :data:`FINISH_SHARE` of the limit. The whole job then ends near its limit,
+        finishing included (the plan says where the finishing needs more)."""
+        est = self.finishing_estimate()
+        if est is None or self.time_limit_s is None:
             return 0.0
-        return min(self.finishing_renders() * self._render_s + self.finishing_writes() * self.write_s,
-                   0.25 * self.time_limit_s)
+        return min(est, FINISH_SHARE * self.time_limit_s)
 
     def start_clock(self, origin: Optional[float] = None) -> None:
         """Count the run's time from ``origin`` (a ``time.perf_counter()`` reading, default now;
