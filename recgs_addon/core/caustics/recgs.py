@@ -184,9 +184,10 @@ WARMUP_SHARE = {"passes": 0.1}
 #: share of the time: the plain model the end-of-run choice weighs is never the untrained points.
 WARMUP_MIN_STEPS = 100
 
-#: The share of a time limit the caustic work (the pass estimator) may take: beyond it (by the
-#: plan's estimate, or the clock while it runs) the run trains as plain 3DGS, so that training
-#: keeps the rest of the limit.
+#: The share of a time limit the caustic work (the pass estimator) may take, so that training
+#: keeps the rest: beyond it by the plan's estimate the work is done on smaller frames
+#: (:data:`PASS_SCALES`), or not at all; beyond it by the clock while it runs, it is given up.
+#: Either way the run then trains as plain 3DGS.
 CAUSTIC_TIME_SHARE = 0.5
 #: The frames the pass estimator may work on to fit that share: the training size divided by
 #: each of these in turn.

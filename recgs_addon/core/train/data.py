@@ -77,7 +77,7 @@ class TrainData:
         self._levels: dict[tuple[int, int], torch.Tensor] = {}   # float16, coarser levels
         self._overlay = None          # overlay.Overlay, found on first use (:meth:`overlay`)
         self._overlay_size = None     # the training size it was found on
-        self._valid: dict[tuple[int, int], Optional[torch.Tensor]] = {}
+        self._valid: dict[tuple[int, int, int], Optional[torch.Tensor]] = {}
 
     def camera(self, index: int, level: int = 1) -> Camera:
         """Camera ``index`` scaled to its training size at extra downscale ``level``."""
@@ -170,7 +170,7 @@ class TrainData:
     def valid(self, index: int, height: int, width: int) -> Optional[torch.Tensor]:
         """(height, width) bool on the view's device: the pixels of view ``index`` at that size
         that count (off the survey's burned-in overlay), or None where every pixel does."""
-        key = (index, height * 100003 + width)
+        key = (index, height, width)
         if key not in self._valid:
             from .overlay import mask_at
             ov = self.overlay()

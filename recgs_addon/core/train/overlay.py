@@ -5,8 +5,9 @@ of training, the light finding, the caustic estimates and the scores.
 Over frames in their order (names sort in time for clips and numbered photos), a scene pixel
 changes from one frame to the next as the camera moves; an overlay's does not. A pixel is an
 overlay where its median change over consecutive frames is below :data:`STATIC_RATIO` of the
-frame's typical change, as it is for most of its 3x3 neighbourhood, and it is either textured (text, a logo: the median frame's gradient at
-least :data:`CONTRAST`) or dark (below :data:`DARK`: corners and margins no light reaches). The
+frame's typical change, as it is for most of its 3x3 neighbourhood, and it is either textured
+(text, a logo: the median frame's gradient at least :data:`CONTRAST`) or dark (below
+:data:`DARK`: corners and margins no light reaches). The
 found pixels grow by :data:`MARGIN` of the width, which covers a time stamp's changing digits
 beside its steady ones. Where the frames hardly change (a camera at rest), or the static part
 is more than :data:`MAX_SHARE` of the frame, nothing is masked and the finding says why.
