@@ -317,7 +317,7 @@ def test_frames_are_evened_by_the_light_fixed_to_the_camera_before_they_are_comp
         v.photo = linear_to_srgb(srgb_to_linear(v.photo) * g).clamp(0, 1)
     lit = [v.photo.clone() for v in views]
     est = SimpleNamespace(trainer=SimpleNamespace(lamp=lamp, light=None, device="cpu", ray_len=lambda c: rays),
-                          data=SimpleNamespace(view=lambda i, level: (cam, None)))
+                          data=SimpleNamespace(camera=lambda i, level=1: cam))
     gains = Estimates._even_the_light(est, views, list(range(len(views))))
     for k, v in enumerate(views):
         assert torch.allclose(v.photo, even[k], atol=2e-3)            # evened: the seabed alone

@@ -228,9 +228,13 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin, LampMix
             out = out._replace(rgb=self.as_seen(out, cam))
         target, weight = self.objective.target(index, img, out.rgb.detach())
         keep = self.counts(index, level)   # a burned-in overlay does not count
+        rgb = out.rgb
         if keep is not None:
             weight = keep.to(img.dtype) if weight is None else weight * keep
-        loss = training_loss(out.rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight,
+            # its pixels show the target, so the SSIM windows that reach into it from outside
+            # take nothing from the render there either: the overlay gets no gradient at all
+            rgb = torch.where(keep.unsqueeze(-1), rgb, target.detach())
+        loss = training_loss(rgb, target, c.lambda_dssim if self.objective.use_ssim else 0.0, weight,
                              self.objective.loss_kind,
                              fast_ssim=numba_ssim.ssim_term if path == "numba" and numba_ssim.load() else None)
         return cam, out, loss

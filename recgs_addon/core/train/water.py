@@ -234,7 +234,7 @@ def decide(fit: dict, pins: dict) -> tuple[bool, str]:
     att = np.asarray(fit["fit"]["attenuation"])
     if not fit.get("spread"):   # the fit ended before its refits: no natural water
         return False, (f"the water fitted to the sparse points (attenuation {_rgb(att)} per unit of range) is unlike "
-                       f"any natural water ({medium_fit.unnatural(att)}): no water model")
+                       f"any natural water ({medium_fit.unnatural(att)}): no measurable water, no water model")
     sd = np.asarray(fit["spread"]["attenuation"])
     z = pins["z"]
     if max(z) < MIN_Z:
