@@ -48,7 +48,10 @@ def _clip_to_recgs(tmp_path, name, iterations, *train_args):
 
 
 def _no_caustics(survey, out, m, log):
+    import torch
+
     from recgs_addon.core.io.images import read_image
+    from recgs_addon.core.train.data import as_float
 
     assert m["light"]["caustics"] is False and "no caustics found" in m["caustics_dropped"], m["caustics_dropped"]
     assert "light: no caustics found" in log and "training as plain 3DGS" in log
@@ -62,8 +65,7 @@ def _no_caustics(survey, out, m, log):
         free = read_image(p)
         # the photo as training held it: at the training size (--max-side), 8-bit where the file is
         photo = read_image(next(cache.glob(p.stem + ".*")), size=(free.shape[1], free.shape[0]), compact=True)
-        photo = photo.astype(np.float32) / 255.0 if photo.dtype == np.uint8 else photo.astype(np.float32)
-        assert np.abs(free - photo).max() < 1e-3
+        assert np.abs(free - as_float(torch.from_numpy(photo)).numpy()).max() < 1e-3
 
 
 def test_a_seabed_filmed_by_an_auv_trains_plain_and_says_why(tmp_path):
