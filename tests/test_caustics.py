@@ -455,13 +455,15 @@ def test_recgs_job_writes_caustic_outputs_and_report(caustic_scene, tmp_path):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "recgs_addon", "train", str(caustic_scene), "--out", str(out), "--mode", "recgs",
            "--iterations", "260", "--warmup", "150", "--recurrence-steps", "50", "--caustic-k", "5",
-           "--holdout-every", "5", "--eager", "--downscale", "1", "--estimator", "lowpass"]
+           "--holdout-every", "5", "--eager", "--downscale", "1", "--estimator", "consensus"]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     events = [json.loads(line) for line in proc.stdout.splitlines()]
     assert any(e.get("phase") == "recurrence" and e.get("recurrence") for e in events if e["event"] == "progress")
     m = json.loads((out / "metrics.json").read_text())
     assert m["recurrences"] and np.isfinite(m["psnr_decaustic_gt"]) and np.isfinite(m["psnr_test_gt"])
+    # C kept and taken off: the caustic-free photos are nearer the ground truth than the photos
+    assert m["caustics_dropped"] is None and m["psnr_decaustic_gt"] > m["psnr_captured_gt"] + 1, m["caustics_dropped"]
     train_names = sorted(p.name for p in (caustic_scene / "images").iterdir())
     test_names = train_names[2::5]       # every 5th from half a period in
     assert m["test_views"] == test_names

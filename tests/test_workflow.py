@@ -175,6 +175,19 @@ def test_export_images_takes_the_true_colour_photos_too(session, tmp_path):
     assert sorted(p.name for p in (tmp_path / "export" / "truecolour").iterdir()) == ["a.png", "b.exr"]
 
 
+def test_export_images_of_a_job_that_found_no_caustics_says_so(session, tmp_path):
+    """A caustic-removal job that took no light off wrote no caustic-free copies: the export
+    says why (its photos are caustic-free as they are) instead of asking for a caustic mode."""
+    import json
+
+    scene, name, out = session
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps({"caustics_dropped": "light: no caustics found"}))
+    with pytest.raises(RuntimeError, match=r"no caustics found\), so its photos are caustic-free as they are"):
+        bpy.ops.recgs.export_images(directory=str(tmp_path / "export"))
+    assert not (tmp_path / "export").exists()
+
+
 def test_operator_errors_report_instead_of_raising(session, tmp_path, monkeypatch):
     from recgs_addon.blender import jobs
     from recgs_addon.core.io.ply import write_gaussian_ply

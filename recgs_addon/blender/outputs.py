@@ -28,6 +28,16 @@ def _job_out(context) -> Path:
     return out
 
 
+def _metrics(out: Path) -> dict:
+    """The job's ``metrics.json`` ({} where it has none or it does not parse)."""
+    import json
+
+    try:
+        return json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+
+
 class RECGS_OT_export_images(bpy.types.Operator):
     """Copy the caustic-free photos written by the last caustic-removal job to a folder (and,
     where the job modelled the water, the photos in true colour to its truecolour subfolder)"""
@@ -52,6 +62,10 @@ class RECGS_OT_export_images(bpy.types.Operator):
         files = sorted(p for p in src.glob("*") if p.is_file()) if src.is_dir() else []
         true = sorted(p for p in true_src.glob("*") if p.is_file()) if true_src.is_dir() else []
         if not files and not true:
+            dropped = _metrics(out).get("caustics_dropped")
+            if dropped:
+                raise WorkflowError(f"{out}: the job took no light off ({dropped}), so its photos are caustic-free "
+                                    "as they are and it wrote no copies of them")
             raise WorkflowError(f"{src}: no caustic-free images; train with a caustic-removal mode "
                                 "(RecGS, 2D Filter, Joint) first")
         if not self.directory:

@@ -354,7 +354,7 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
         "status": "done", "reason": reason, "iterations": trainer.step,
         "seconds": round(trainer.elapsed, 2), "job_seconds": round(time.perf_counter() - t_command, 2),
         "peak_resident_bytes": peak_resident_bytes(), "finish_seconds": parts,
-        "reserve_seconds": round(trainer.finishing_reserve(), 2),
+        "reserve_seconds": round(trainer.finishing_reserve(), 2), "reserve_writes": trainer.finishing_writes(),
         "gaussians": int(trainer.params["means"].shape[0]),
         "sh_degree": trainer.sh_degree,
         "test_views": [trainer.data.scene.cameras[i].name for i in trainer.data.test_ids],

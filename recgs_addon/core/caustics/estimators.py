@@ -130,6 +130,10 @@ class Estimates:
         image = self.data.view(index, 1)[1]
         return image - self.decaustic_image(index)
 
+    def takes_light_off(self) -> bool:
+        """No light estimated (none yet, or C dropped): every caustic-free photo is the photo."""
+        return self.gain_model is not None if self._likelihood else bool(self.maps)
+
     @torch.no_grad()
     def decaustic_image(self, index: int) -> torch.Tensor:
         image = self.data.view(index, 1)[1]

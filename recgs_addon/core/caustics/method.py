@@ -43,11 +43,16 @@ class Method:
         caustic-free photos), for the time limit's reserve (``Trainer.finishing_reserve``)."""
         return 0
 
+    def takes_light_off(self) -> bool:
+        """Whether the method's caustic-free photos differ from the photos: False for methods
+        that make none, and for a caustic method that found no light to take off (its photos are
+        caustic-free as they are, so no copies of them are written)."""
+        return type(self).decaustic_image is not Method.decaustic_image
+
     def finishing_images(self) -> int:
         """Images the method writes after training, for the reserve: a caustic map and the
-        caustic-free photo (PNG and EXR) of every training view where it makes them."""
-        makes = type(self).decaustic_image is not Method.decaustic_image
-        return 3 * len(self.data.train_ids) if makes else 0
+        caustic-free photo (PNG and EXR) of every training view where it takes light off."""
+        return 3 * len(self.data.train_ids) if self.takes_light_off() else 0
 
     def state_bytes(self) -> int:
         """Memory the method's per-view state (caustic maps, targets) takes at its largest."""

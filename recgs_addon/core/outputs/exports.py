@@ -6,9 +6,10 @@
   lamp on the camera: ``lamp.json`` (its terms); with either, ``truecolour/NAME.png`` (+ ``.exr``):
   each training photo (caustic-free in the caustic modes) taken out of the water and the lamp's
   light along the model's range: the seabed's true colour, evenly lit;
-* caustic modes: ``caustic/NAME.exr`` (the additive caustic estimate C of each training view,
-  float, signed) and ``decaustic/NAME.png`` (+ ``.exr``): the caustic-free image ``I - C``
-  (clipped to [0, 1] in the PNG only).
+* caustic modes, where the run took light off: ``caustic/NAME.exr`` (the additive caustic
+  estimate C of each training view, float, signed) and ``decaustic/NAME.png`` (+ ``.exr``): the
+  caustic-free image ``I - C`` (clipped to [0, 1] in the PNG only). A run that found no caustics
+  writes neither: its photos are caustic-free as they are.
 
 Returns the scores these images allow: PSNR of the caustic-free training images against the
 ground truth (and of the captured ones, for reference) where the survey has ground truth.
@@ -50,6 +51,7 @@ def write_outputs(method, out: Path) -> dict:
     if trainer.forms_image:
         _write_models(trainer, out)
     captured, cleaned, true_scores = [], [], []
+    takes_off = method.takes_light_off()
     for i in data.train_ids:
         image = data.view(i, 1)[1]
         gt = data.gt_view(i)
@@ -58,7 +60,7 @@ def write_outputs(method, out: Path) -> dict:
             captured.append(psnr(image, gt))
         # made once a view (None where the method makes none): it may render the view and
         # estimate its light
-        free = method.decaustic_image(i)
+        free = method.decaustic_image(i) if takes_off else None
         if free is not None:
             write_image(out / "caustic" / f"{stem}.exr", (image - free).cpu().numpy())
             write_image(out / "decaustic" / f"{stem}.png", free.cpu().numpy())

@@ -157,7 +157,7 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
                   f"{against.get(r.get('heldout_vs'), '-') if r.get('psnr_heldout') is not None else '-'} |"
                   for r in rec]
     data = None if method is None else method.data
-    if data is not None and data.train_ids and method.decaustic_image(data.train_ids[0]) is not None:
+    if data is not None and data.train_ids and method.takes_light_off():
         ids = data.train_ids[:: max(1, len(data.train_ids) // examples)][:examples]
         lines += ["", "## Examples (training views)", ""]
         for i in ids:
@@ -181,6 +181,9 @@ def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -
             plot.labelled_strip(rd / f"caustic_{name}.png", strip, lbl)
             lines += [f"![{name}](report/triptych_{name}.png)", "", f"![{name} caustics](report/caustic_{name}.png)", ""]
             lines += _supplied(metrics.get("passes") or {}, data.scene.cameras[i].name)
+    elif data is not None and cfg.get("mode") in CAUSTIC_MODES:
+        lines += ["", "No light was taken off the photos, so they are caustic-free as they are: the run wrote no "
+                  "caustic maps and no caustic-free copies of them (`decaustic/`).", ""]
     path = out / "report.md"
     with atomic_path(path, "report") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
