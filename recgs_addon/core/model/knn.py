@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 _OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], np.int64)
+#: Mean points an occupied cell may hold before the cells are made smaller.
+MAX_OCCUPANCY = 4.0
 #: Candidate pairs evaluated at once (bounds the memory of one pass: ~40 bytes a pair).
 _CHUNK_PAIRS = 4_000_000
 
@@ -55,6 +57,28 @@ def _knn_pass(pts: np.ndarray, query: np.ndarray, k: int, size: float):
     return out
 
 
+def occupancy(pts: np.ndarray, size: float) -> float:
+    """Mean points an occupied cell of edge ``size`` holds."""
+    cells = np.floor((pts - pts.min(0)) / size).astype(np.int64)
+    return len(pts) / len(np.unique(_cell_keys(cells)))
+
+
+def cell_size(pts: np.ndarray) -> float:
+    """The grid's first cell edge for (N, 3) points: cells holding about two points on average
+    (measured: 1, 2 and k + 1 per cell cost the same within 10 %; sparse regions are asked
+    again, coarser). Sized over the bounding box, then halved while the occupied cells hold
+    more than :data:`MAX_OCCUPANCY`: a survey's points lie on a surface, with outliers far off
+    that stretch the box, so the box's cells would hold hundreds (and every query would compare
+    with thousands)."""
+    extent = float(np.max(pts.max(0) - pts.min(0)))
+    span = np.maximum(pts.max(0) - pts.min(0), extent * 1e-6)
+    size = float(np.prod(span) * 2.0 / len(pts)) ** (1 / 3)
+    size = min(max(size, extent / 2 ** 20), extent)                  # 21 bits an axis
+    while size / 2 >= extent / 2 ** 20 and occupancy(pts, size) > MAX_OCCUPANCY:
+        size /= 2
+    return size
+
+
 def knn_distances(points: np.ndarray, k: int) -> np.ndarray:
     """(N, k) distances of each point to its k nearest other points, ascending (exact).
     Needs N > k."""
@@ -65,11 +89,7 @@ def knn_distances(points: np.ndarray, k: int) -> np.ndarray:
     extent = float(np.max(pts.max(0) - pts.min(0)))
     if extent == 0.0:
         return np.zeros((n, k))
-    # cells holding about two points on average over the bounding box (measured: 1, 2 and
-    # k + 1 per cell cost the same within 10 %; sparse regions are asked again, coarser)
-    span = np.maximum(pts.max(0) - pts.min(0), extent * 1e-6)
-    size = float(np.prod(span) * 2.0 / n) ** (1 / 3)
-    size = min(max(size, extent / 2 ** 20), extent)                  # 21 bits an axis
+    size = cell_size(pts)
     out = np.empty((n, k))
     todo = np.arange(n)
     while len(todo):
