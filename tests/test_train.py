@@ -1060,3 +1060,45 @@ def test_a_clone_under_significance_renders_as_its_original_did(small_scene):
 
     keeps, copies = change(True), change(False)
     assert copies > 0.5 and keeps < copies / 3   # the split keeps the peak and the integral, not the profile
+
+
+def test_a_job_whose_finishing_would_not_fit_its_limit_trains_smaller(small_scene, tmp_path, capsys, monkeypatch):
+    """Where the outputs and scores alone (the renders and writes after training, which go
+    with the pixels) would take more than FINISH_SHARE of the time limit at the training size,
+    the job trains at a half or a quarter of the long side and says so first; where that fits
+    already, where no limit is set or no smaller size is allowed, the size is kept."""
+    from types import SimpleNamespace
+
+    from recgs_addon.cli import main
+    from recgs_addon.commands import train as train_cmd
+    from recgs_addon.core.io.images import read_image
+    from recgs_addon.core.train.progress import FINISH_SHARE, ProgressMixin
+
+    # the finishing, in seconds, as a tenth of the training width: 4 s at 40 px, 1 s at 20 px
+    monkeypatch.setattr(ProgressMixin, "finishing_estimate", lambda self: 0.1 * self.data.sizes[0][0])
+    monkeypatch.setattr(train_cmd, "MIN_FIT_SIDE", 16)
+    out = tmp_path / "out"
+    code = main(["train", str(small_scene), "--out", str(out), "--eager", "--max-minutes", "0.05", "--holdout-every", "4"])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    m = json.loads((out / "metrics.json").read_text())
+    fitted = m["plan"]["fitted"]
+    assert fitted["from"] == [40, 30] and fitted["to"] == [20, 15] and m["plan"]["width"] == 20, fitted
+    assert "size: at 40x30 the outputs and scores alone would take about 4 s of the 3-s limit: training at 20x15" in err
+    assert read_image(next((out / "renders").glob("*.png"))).shape[:2] == (15, 20)
+
+    monkeypatch.undo()   # MIN_FIT_SIDE as it is
+
+    def stub(finish, side=1000, limit=100.0):
+        return SimpleNamespace(time_limit_s=limit, finishing_estimate=lambda: finish, render_output=lambda i: None,
+                               data=SimpleNamespace(test_ids=[1], train_ids=[0], sizes=[(side, side // 2)] * 2))
+
+    share = FINISH_SHARE * 100.0
+    assert train_cmd._fitting_side(stub(share)) is None                       # fits as it is
+    assert train_cmd._fitting_side(stub(10 * share, limit=None)) is None      # no limit
+    assert train_cmd._fitting_side(stub(3 * share))["side"] == 500            # a half is enough
+    assert train_cmd._fitting_side(stub(10 * share, side=2000))["side"] == 500   # a quarter, the least
+    assert train_cmd._fitting_side(stub(100 * share, side=2000))["side"] == 500
+    assert train_cmd._fitting_side(stub(10 * share))["side"] == 500           # no smaller than MIN_FIT_SIDE
+    assert train_cmd._fitting_side(stub(10 * share, side=600)) is None
+    assert train_cmd._fitting_side(stub(10 * share, side=30)) is None

@@ -21,7 +21,8 @@ import math
 import os
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
+from typing import Optional
 from pathlib import Path
 
 from ..core.caustics.config import CAUSTIC_MODES
@@ -98,7 +99,6 @@ def run_train(args) -> int:
 
     allocator = tune_allocator()
 
-    from ..core.caustics.build import make_method
     from ..core.caustics.config import CausticConfig
     from ..core.io.ply import read_gaussian_ply
     from ..core.train.checkpoint import load_checkpoint
@@ -143,26 +143,14 @@ def run_train(args) -> int:
             ccfg = CausticConfig(**{k: v for k, v in caustic.items() if v is not None})
         init = read_gaussian_ply(args.init_ply) if args.init_ply and not args.resume else None
         gt = args.gt_images if args.gt_images is not None else default_gt_dir(args.scene_dir)
-        method = make_method(args.scene_dir, cfg, ccfg, images=args.images, gaussians=init, gt_images=gt)
-        trainer = method.trainer
-        if state is not None:
-            method.load_state_dict(state)
-        # every image the run uses is read now, so a file that does not decode stops the job
-        # before it writes anything (training would read them all anyway; they stay cached)
-        trainer.data.load_all(trainer.level(), on_image=_reading_progress(time.perf_counter()))
-        from ..core.train.water import DECIDE_VIEWS
-
-        # what _finish renders: held-out views (outputs, final scores), every training view
-        # (views per Gaussian), every view again at most 400 px (coverage), with water or a lamp
-        # every training view's range (its true-colour photo), and with water a few to decide on it
-        n_train, n_test = len(trainer.data.train_ids), len(trainer.data.test_ids)
-        trainer.finishing_renders = lambda: (2 * n_test + 2 * n_train + n_test + method.finishing_renders()
-                                             + (n_train if trainer.forms_image else 0)
-                                             + (DECIDE_VIEWS if trainer.medium is not None else 0))
-        # and the images it writes: held-out renders, the method's, the true-colour photos
-        trainer.finishing_writes = lambda: (2 * n_test + method.finishing_images()
-                                            + (2 * n_train if trainer.forms_image else 0))
-        plan = _plan(args, method, trainer)
+        method, trainer = _build(args, cfg, ccfg, init, gt, state)
+        fitted = _fitting_side(trainer) if state is None else None
+        if fitted is not None:   # trained smaller, so that the outputs and scores fit the time limit
+            trainer.compiler.close()
+            cfg = replace(cfg, max_side=fitted["side"])
+            method, trainer = _build(args, cfg, ccfg, init, gt, state)
+            fitted["to"] = list(trainer.data.sizes[trainer.data.train_ids[0]])
+        plan = _plan(args, method, trainer, fitted)
         trainer.start_clock(t_command)
     except RecGSError as exc:
         return fail(str(exc))
@@ -178,6 +166,70 @@ def run_train(args) -> int:
         return _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator, plan, t_command)
     finally:
         lock.__exit__(None, None, None)
+
+
+def _build(args, cfg, ccfg, init, gt, state):
+    """The run's method and trainer at ``cfg``'s size, every image read, and what the finishing
+    renders and writes counted for the time limit's reserve."""
+    from ..core.caustics.build import make_method
+    from ..core.train.water import DECIDE_VIEWS
+
+    method = make_method(args.scene_dir, cfg, ccfg, images=args.images, gaussians=init, gt_images=gt)
+    trainer = method.trainer
+    if state is not None:
+        method.load_state_dict(state)
+    # every image the run uses is read now, so a file that does not decode stops the job
+    # before it writes anything (training would read them all anyway; they stay cached)
+    trainer.data.load_all(trainer.level(), on_image=_reading_progress(time.perf_counter()))
+    # what _finish renders: held-out views (outputs, final scores), every training view
+    # (views per Gaussian), every view again at most 400 px (coverage), with water or a lamp
+    # every training view's range (its true-colour photo), and with water a few to decide on it
+    n_train, n_test = len(trainer.data.train_ids), len(trainer.data.test_ids)
+    trainer.finishing_renders = lambda: (2 * n_test + 2 * n_train + n_test + method.finishing_renders()
+                                         + (n_train if trainer.forms_image else 0)
+                                         + (DECIDE_VIEWS if trainer.medium is not None else 0))
+    # and the images it writes: held-out renders, the method's, the true-colour photos
+    trainer.finishing_writes = lambda: (2 * n_test + method.finishing_images()
+                                        + (2 * n_train if trainer.forms_image else 0))
+    return method, trainer
+
+
+#: Where the outputs and scores alone would take more than ``FINISH_SHARE`` of the time limit at
+#: the training size, the job trains at a half or a quarter of its long side instead ...
+FIT_FACTORS = (2, 4)
+#: ... but no smaller than this (pixels, long side).
+MIN_FIT_SIDE = 320
+
+
+def _fitting_side(trainer) -> Optional[dict]:
+    """The long side (``side``) to train at so that the finishing (its renders, timed on one view
+    now; a render's time goes with its pixels) fits ``FINISH_SHARE`` of the time limit, and what
+    it was fitted from; None where it fits as it is, there is no limit, or no smaller size helps.
+    A job that trained its 42 steps at full size and ended 20 % late on a 3-minute limit trains
+    its hundreds at half the size and ends on time: the finishing's renders and writes go with
+    the pixels, and so do the steps."""
+    from ..core.train.progress import FINISH_SHARE
+
+    limit = trainer.time_limit_s
+    if limit is None:
+        return None
+    trainer.render_output((trainer.data.test_ids or trainer.data.train_ids)[0])
+    finish = trainer.finishing_estimate()
+    if finish is None or finish <= FINISH_SHARE * limit:
+        return None
+    width, height = trainer.data.sizes[trainer.data.train_ids[0]]
+    side = max(max(wh) for wh in trainer.data.sizes)
+    factor = None
+    for f in FIT_FACTORS:
+        if side / f < MIN_FIT_SIDE:
+            break
+        factor = f
+        if finish / f ** 2 <= FINISH_SHARE * limit:
+            break
+    if factor is None:
+        return None
+    return {"side": int(round(side / factor)), "from": [width, height], "finishing_seconds": round(finish, 1),
+            "limit_seconds": limit}
 
 
 def _write_seconds(out: Path, trainer) -> float:
@@ -214,9 +266,10 @@ def _reading_progress(t0: float):
     return on_image
 
 
-def _plan(args, method, trainer):
+def _plan(args, method, trainer, fitted: Optional[dict] = None):
     """The run's plan (``core/train/plan.py``): emitted as a ``plan`` event and printed before
-    any training; a run that cannot fit in memory is refused here (RecGSError)."""
+    any training; a run that cannot fit in memory is refused here (RecGSError). ``fitted``: the
+    training size was lowered to fit the time limit (:func:`_fitting_side`), said first."""
     from ..core.train.plan import plan_run
 
     limit = None if args.max_memory is None else int(args.max_memory * 2 ** 30)
@@ -235,6 +288,12 @@ def _plan(args, method, trainer):
     trainer.render_output((trainer.data.test_ids or trainer.data.train_ids)[0])
     finish = trainer.finishing_estimate()
     limit_s = trainer.time_limit_s
+    if fitted is not None:
+        (w, h), (w2, h2) = fitted["from"], fitted["to"]
+        plan.fitted = fitted
+        plan.notes.append(f"size: at {w}x{h} the outputs and scores alone would take about "
+                          f"{fitted['finishing_seconds']:.0f} s of the {fitted['limit_seconds']:.0f}-s limit: training "
+                          f"at {w2}x{h2} instead, where they fit (a longer limit or fewer photos trains at {w}x{h})")
     if finish is not None and limit_s is not None:
         from ..core.train.progress import FINISH_SHARE
         line = f"finishing: about {finish:.0f} s of renders for the outputs and scores"

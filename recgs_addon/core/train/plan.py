@@ -165,6 +165,7 @@ class RunPlan:
     work_megapixels: Optional[float] = None   # ... over this many megapixels of frames
     work_given_up: Optional[str] = None    # why that work will not be done (it does not fit)
     work_scale: int = 1                    # ... done on frames of 1 / this of the training size
+    fitted: Optional[dict] = None          # the training size lowered to fit the time limit (from what, why)
 
     def summary(self) -> dict:
         return asdict(self)
