@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from conftest import write_colmap_scene
-from recgs_addon.core.io.colmap import load_scene
+from recgs_addon.core.io.colmap import find_model_dir, load_scene
 from recgs_addon.core.errors import SceneError
 from recgs_addon.core.io.images import read_image
 
@@ -70,6 +70,40 @@ def test_distorted_models_are_undistorted_into_cache(tmp_path, model):
     mtime = scene.image_path(cam).stat().st_mtime_ns
     again = load_scene(root)
     assert again.image_dir == scene.image_dir and again.image_path(cam).stat().st_mtime_ns == mtime
+
+
+def test_two_jobs_undistorting_one_survey_at_once_keep_the_first_cache(tmp_path, monkeypatch):
+    """Two runs started side by side on a survey both undistort it: the one that finishes
+    second keeps the first one's cache, which that run is reading, instead of deleting it under
+    it; a leftover cache without its ``done`` mark is replaced."""
+    import pycolmap
+
+    from recgs_addon.core.io import colmap
+
+    root = tmp_path / "s"
+    write_colmap_scene(root, model="OPENCV")
+    real = pycolmap.undistort_images
+    first = {}
+
+    def beside(out_dir, *a, **kw):   # the other job finishes while this one undistorts
+        real(out_dir, *a, **kw)
+        if not first:
+            first["busy"] = True   # the other job's own undistortion runs as it is
+            first["dir"] = load_scene(root).image_dir.parent
+            (first["dir"] / "reading").write_text("the other job's")
+    monkeypatch.setattr(pycolmap, "undistort_images", beside)
+    key = colmap._cache_key(find_model_dir(root), root / "images", sorted(p.name for p in (root / "images").iterdir()))
+    (root / ".recgs_cache").mkdir()
+    mine = colmap._undistort(find_model_dir(root), root / "images",
+                             sorted(p.name for p in (root / "images").iterdir()), root / ".recgs_cache")
+    assert mine == first["dir"] == root / ".recgs_cache" / f"undistorted-{key}"
+    assert (mine / "reading").read_text() == "the other job's" and (mine / "sparse" / "points3D.bin").is_file()
+    assert [p.name for p in (root / ".recgs_cache").iterdir()] == [mine.name]   # nothing left behind
+    # a broken leftover (no done mark) is replaced
+    (mine / "done").unlink()
+    monkeypatch.setattr(pycolmap, "undistort_images", real)
+    again = load_scene(root)
+    assert (again.image_dir.parent / "done").is_file() and not (again.image_dir.parent / "reading").exists()
 
 
 def test_unsupported_model_refused(tmp_path):

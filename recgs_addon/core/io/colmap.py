@@ -222,6 +222,23 @@ def default_cache_dir(scene_dir: Path) -> Path:
     return base / "recgs" / hashlib.sha256(str(scene_dir.resolve()).encode()).hexdigest()[:16]
 
 
+def _settle(tmp: Path, out: Path) -> None:
+    """Move a finished cache ``tmp`` to ``out``. Where another job (a second run on the survey
+    started beside this one) finished ``out`` first, its cache stays, since that job may be
+    reading it now, and ``tmp`` goes; a leftover ``out`` without its ``done`` mark is replaced."""
+    try:
+        os.replace(tmp, out)
+        return
+    except OSError:
+        if not out.exists():
+            raise
+    if (out / "done").exists():
+        shutil.rmtree(tmp, ignore_errors=True)
+        return
+    shutil.rmtree(out, ignore_errors=True)
+    os.replace(tmp, out)
+
+
 def _undistort(model_dir: Path, image_dir: Path, names: list[str], cache_dir: Path) -> Path:
     """Undistort into ``cache_dir/undistorted-KEY`` (images/ + sparse/); reuse it when present."""
     import pycolmap
@@ -242,9 +259,7 @@ def _undistort(model_dir: Path, image_dir: Path, names: list[str], cache_dir: Pa
         if not (tmp / "sparse").is_dir():
             raise SceneError(f"{model_dir}: pycolmap's undistortion produced no model in {tmp}")
         (tmp / "done").write_text(key)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
+        _settle(tmp, out)
     except Exception:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
