@@ -118,6 +118,9 @@ SURVEYS.update({
 # caustics; clean/ holds the seabed under even light.
 SURVEYS.update({
     "dive-lamp": DIVE + ["--seed", "51", "--caustic-strength", "0", "--lamp"],
+    # ... and a lamp in green coastal water, the diver rising and sinking: the lamp's light
+    # attenuated on its way to the seabed as on its way back
+    "dive-lamp-water": DIVE + WATER + ["--seed", "52", "--caustic-strength", "0", "--lamp"],
 })
 # The hard cases real footage brings: a tiled floor seen forward and down (pitched 45 degrees,
 # the horizon in view: repetitive texture, grazing views, open water) with a time stamp burned

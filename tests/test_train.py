@@ -1102,3 +1102,14 @@ def test_a_job_whose_finishing_would_not_fit_its_limit_trains_smaller(small_scen
     assert train_cmd._fitting_side(stub(10 * share))["side"] == 500           # no smaller than MIN_FIT_SIDE
     assert train_cmd._fitting_side(stub(10 * share, side=600)) is None
     assert train_cmd._fitting_side(stub(10 * share, side=30)) is None
+
+
+def test_the_finishing_counts_its_small_renders_by_their_pixels():
+    """The views per Gaussian and the coverage render every training view at most 400 px on the
+    long side: counted by their share of the pixels, no less than SMALL_RENDER_FLOOR of a render
+    at the training size (what a render does per Gaussian stays)."""
+    from recgs_addon.commands.train import SMALL_RENDER_FLOOR, small_render_share
+
+    assert small_render_share([(320, 240)]) == 1.0                   # no smaller than the training size
+    assert small_render_share([(686, 367), (600, 300)]) == 0.25       # half the side: a quarter
+    assert small_render_share([(1371, 733)]) == SMALL_RENDER_FLOOR    # 1/16 of the pixels, the floor
