@@ -138,6 +138,38 @@ def test_water_is_modelled_where_the_attenuation_is_coloured_clear_of_its_error_
     assert not shown and "too weak to matter" in why
 
 
+def test_water_that_would_leave_the_seabed_brighter_than_white_is_no_water():
+    """A lamp's fall-off with range taken for water: the fit's attenuation is coloured, pinned
+    and like a natural water's, but it leaves most points brighter than white once taken out of
+    it (the true colour above 1), which no seabed is: no water model."""
+    f = _fit_dict([2.1, 1.2, 1.6], [0.01, 0.01, 0.01])
+    assert water.decide(f, water.pinning(f))[0]             # nothing else tells it
+    f["over_white"] = 0.81
+    shown, why = water.decide(f, water.pinning(f))
+    assert not shown and "81 % of them brighter than white" in why and "no water model" in why
+    f["over_white"] = 0.02                                   # a few bright or noisy points: still water
+    assert water.decide(f, water.pinning(f))[0]
+
+
+def test_the_points_fit_says_how_many_it_leaves_brighter_than_white():
+    """``fit_from_points`` counts the points whose fitted true colour exceeds white: none for
+    water that truly acts on a seabed of reflectance below 1; most where the photos' colours
+    fall off with range far faster than any water's (a lamp's inverse square, 30 times over)."""
+    import torch
+
+    from recgs_addon.core.model.colour import linear_to_srgb
+
+    def srgb(lin):
+        return linear_to_srgb(torch.from_numpy(np.clip(lin, 0, 1)).float()).numpy()
+
+    point, rng, y, _ = _observations(n=200, per=6, spread=1.5, noise=0.005, seed=3)
+    obs = {"point": point, "range": rng, "colour": srgb(y), "points": np.arange(int(point.max()) + 1)}
+    fit = water.fit_from_points(obs, float(np.median(rng)), rounds=0)
+    assert fit["over_white"] < water.MAX_OVER_WHITE
+    dim = dict(obs, colour=srgb(y * np.exp(-3.0 * (rng - rng.min()))[:, None]))
+    assert water.fit_from_points(dim, float(np.median(rng)), rounds=0)["over_white"] > water.MAX_OVER_WHITE
+
+
 def test_attenuation_unlike_any_natural_water_is_no_water():
     """Attenuation below 0 beyond its error bar, or red's below green's, is no natural water:
     the run models none, whatever the error bars say of its size."""

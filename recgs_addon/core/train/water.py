@@ -64,6 +64,11 @@ KEEP_VEIL = True
 #: The seabed's average true colour, brightest over weakest channel (linear), beyond which the
 #: report says the colour is strongly tinted (a grey-world cue, not a rule).
 GREY_WORLD = 3.0
+#: The most of the sparse points the fitted water may leave brighter than white once they are
+#: taken out of it (true colour above 1 in a channel, linear): no seabed reflects more light than
+#: it is given. Natural fits leave none (a reef in coastal water: 0.74 at the 99th percentile);
+#: a lamp's fall-off with range taken for water left 81 % above it, the median at 31.
+MAX_OVER_WHITE = 0.1
 #: Observations the fit under moving light uses at most (the light's gain is noise a few
 #: thousand points' views average out; measured on a level survey under light networks: red
 #: attenuation 6 % off from 60,000, 9 % from 12,000).
@@ -186,6 +191,7 @@ def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, ro
             "effect_levels": effect, "observations": int(len(pt)), "gain": fit["gain"],
             "fit": {k: fit[k] for k in ("attenuation", "backscatter", "veil", "veil_at_length")},
             "J_mean": np.clip(fit["J"][np.unique(point)], 0.0, 1.0).mean(0).tolist() if len(point) else [],
+            "over_white": float((np.asarray(fit["J"])[np.unique(point)].max(1) > 1.0).mean()) if len(point) else 0.0,
             "spread": fit.get("spread"),
             "under_light": {k: fit[k] for k in ("under_light", "light_noise", "plain_attenuation") if k in fit} or None}
 
@@ -228,7 +234,8 @@ def decide(fit: dict, pins: dict) -> tuple[bool, str]:
     """Whether the photos show water (:func:`fit_from_points` with its error bars, their
     :func:`pinning`), and why: some channel's attenuation :data:`MIN_Z` error bars above 0,
     attenuation like a natural water's (none below 0, red above green:
-    ``medium_fit.unnatural``), the channels' as far apart (water takes red first; a fall-off
+    ``medium_fit.unnatural``), the points' true colours no brighter than white (at most
+    :data:`MAX_OVER_WHITE` of them), the channels' as far apart (water takes red first; a fall-off
     alike in every channel is the light's), and a change to the points' colours of
     :data:`MIN_EFFECT` levels."""
     att = np.asarray(fit["fit"]["attenuation"])
@@ -245,6 +252,11 @@ def decide(fit: dict, pins: dict) -> tuple[bool, str]:
     if odd is not None:
         return False, (f"the water fitted to the sparse points (attenuation {_rgb(att)} per unit of range) is unlike "
                        f"any natural water ({odd}): no water model")
+    over = float(fit.get("over_white", 0.0))
+    if over > MAX_OVER_WHITE:
+        return False, (f"the water fitted to the sparse points (attenuation {_rgb(att)} per unit of range) would leave "
+                       f"{100 * over:.0f} % of them brighter than white once taken out of it, and no seabed is: their "
+                       "colours fall off with range for another reason (a lamp's light, the exposure): no water model")
     hi, lo = int(att.argmax()), int(att.argmin())
     z_colour = (att[hi] - att[lo]) / max(float(np.hypot(sd[hi], sd[lo])), 1e-12)
     if z_colour < MIN_Z:
