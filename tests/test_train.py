@@ -912,10 +912,11 @@ def test_time_limit_keeps_room_for_the_finishing(small_scene):
     assert tr.finishing_reserve() == 0.0
     tr.evaluate()                          # renders the held-out views: a render time
     tr.finishing_renders = lambda: 4
-    assert 0.0 < tr.finishing_reserve() < 1.0
-    renders_only = tr.finishing_reserve()
+    renders_only = tr.finishing_estimate()
+    assert 0.0 < renders_only and tr.finishing_reserve() == pytest.approx(min(renders_only, 3.0 * FINISH_SHARE))
     tr.finishing_writes, tr.write_s = (lambda: 10), 0.02   # and the images it writes: 10 at 20 ms
-    assert tr.finishing_reserve() == pytest.approx(renders_only + 0.2)
+    assert tr.finishing_estimate() == pytest.approx(renders_only + 0.2)
+    assert tr.finishing_reserve() == pytest.approx(min(renders_only + 0.2, 3.0 * FINISH_SHARE))
     tr.finishing_renders = lambda: 10 ** 6
     assert tr.finishing_reserve() == pytest.approx(3.0 * FINISH_SHARE)
     assert tr.finishing_estimate() > 100 * tr.finishing_reserve()

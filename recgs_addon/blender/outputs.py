@@ -8,6 +8,7 @@ from pathlib import Path
 import bpy
 from bpy.props import StringProperty
 
+from ..core.caustics.config import CAUSTIC_MODES
 from ..core.io.atomic import copy_file, make_folder
 from .workflow import WorkflowError, _run, out_dir_for, scene_dir_for
 
@@ -62,7 +63,10 @@ class RECGS_OT_export_images(bpy.types.Operator):
         files = sorted(p for p in src.glob("*") if p.is_file()) if src.is_dir() else []
         true = sorted(p for p in true_src.glob("*") if p.is_file()) if true_src.is_dir() else []
         if not files and not true:
-            dropped = _metrics(out).get("caustics_dropped")
+            metrics = _metrics(out)
+            dropped = metrics.get("caustics_dropped") or (
+                "it ended before its first caustic estimate" if (metrics.get("config") or {}).get("mode")
+                in CAUSTIC_MODES else None)
             if dropped:
                 raise WorkflowError(f"{out}: the job took no light off ({dropped}), so its photos are caustic-free "
                                     "as they are and it wrote no copies of them")
