@@ -304,7 +304,8 @@ def _plan(args, method, trainer, fitted: Optional[dict] = None):
     # one render timed now, so that the time limit keeps room for the finishing renders from the
     # first step (before, the first held-out evaluation measured it: a slow step's run went
     # without a reserve until then)
-    trainer.render_output((trainer.data.test_ids or trainer.data.train_ids)[0])
+    if trainer.finishing_estimate() is None:   # no render timed yet (_fitting_side times one)
+        trainer.render_output((trainer.data.test_ids or trainer.data.train_ids)[0])
     finish = trainer.finishing_estimate()
     limit_s = trainer.time_limit_s
     if fitted is not None:

@@ -187,11 +187,12 @@ def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, ro
         err_water = float((fitted - seen).abs().mean()) * 255
         effect = float((fitted - true_srgb[pt]).abs().mean()) * 255
     medium.raw = torch.nn.Parameter(medium.raw.detach().to(device))
+    j_seen = np.asarray(fit["J"])[np.unique(point)]   # the fitted true colours of the points seen
     return {"medium": medium, "true": true_srgb.numpy(), "error_plain": err_plain, "error_water": err_water,
             "effect_levels": effect, "observations": int(len(pt)), "gain": fit["gain"],
             "fit": {k: fit[k] for k in ("attenuation", "backscatter", "veil", "veil_at_length")},
-            "J_mean": np.clip(fit["J"][np.unique(point)], 0.0, 1.0).mean(0).tolist() if len(point) else [],
-            "over_white": float((np.asarray(fit["J"])[np.unique(point)].max(1) > 1.0).mean()) if len(point) else 0.0,
+            "J_mean": np.clip(j_seen, 0.0, 1.0).mean(0).tolist() if len(point) else [],
+            "over_white": float((j_seen.max(1) > 1.0).mean()) if len(point) else 0.0,
             "spread": fit.get("spread"),
             "under_light": {k: fit[k] for k in ("under_light", "light_noise", "plain_attenuation") if k in fit} or None}
 
