@@ -18,6 +18,7 @@ Conventions
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -164,6 +165,32 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q[q[:, 0] < 0] *= -1
     return q.reshape(shape + (4,))
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:
+    """The unit quaternion (w, x, y, z) a share ``s`` in [0, 1] of the way from ``q0`` to ``q1``
+    along the shorter arc (spherical linear interpolation)."""
+    q0 = np.asarray(q0, np.float64) / np.linalg.norm(q0)
+    q1 = np.asarray(q1, np.float64) / np.linalg.norm(q1)
+    d = float(q0 @ q1)
+    if d < 0:   # q and -q are one rotation: take the shorter way
+        q1, d = -q1, -d
+    if d > 0.9995:   # nearly the same: the chord is the arc
+        q = q0 + s * (q1 - q0)
+    else:
+        th = math.acos(d)
+        q = (math.sin((1 - s) * th) * q0 + math.sin(s * th) * q1) / math.sin(th)
+    return q / np.linalg.norm(q)
+
+
+def interpolate_pose(R0: np.ndarray, t0: np.ndarray, R1: np.ndarray, t1: np.ndarray,
+                     s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The world-to-camera pose (R, t) a share ``s`` of the way between two poses: the rotation
+    by :func:`slerp`, the camera centre on the straight line between the two centres (a camera
+    moving steadily between two frames of a video)."""
+    R = quat_to_rotmat(slerp(rotmat_to_quat(R0), rotmat_to_quat(R1), s))
+    c = (1 - s) * (-R0.T @ t0) + s * (-R1.T @ t1)
+    return R, -R @ c
 
 
 #: Sensor width used for Blender cameras (mm). Any value works; the lens is set to match fx.
