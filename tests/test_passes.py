@@ -395,3 +395,80 @@ def test_ambiguous_depth_two_peaks_on_texture_or_a_grazing_view():
     slope = math.tan(math.radians(80))
     tilted = (2.0 / (1 - slope * u)).clamp(0.1, 100).expand(16, 20)   # z = 2 + slope * x
     assert bool(G.grazing(v, tilted)[:, 10:12].all())
+
+
+def video(strength=0.9, rows=2, per_row=6, step=0.3, row_gap=0.6, dt=0.4, between=3):
+    """A lawnmower filmed as a video: keyframes ``dt`` s apart, ``step`` m apart along each row,
+    and ``between`` look frames between two keyframes of a row (on the line between them, at
+    their own instants). Returns (keyframes, their truths, looks)."""
+    keys, gts, looks = [], [], []
+    t = 0.0
+    for r in range(rows):
+        xs = [k * step for k in range(per_row)]
+        if r % 2:
+            xs = xs[::-1]
+        for k, x in enumerate(xs):
+            photo, gt, depth, vm, K = frame(x, r * row_gap, t, strength)
+            keys.append(G.PassView(photo, depth, torch.ones(H, W, dtype=torch.bool), vm, K, t))
+            gts.append(gt)
+            if k + 1 < per_row:
+                for m in range(1, between + 1):
+                    s = m / (between + 1)
+                    lx = x + s * (xs[k + 1] - x)
+                    photo, _, depth, vm, K = frame(lx, r * row_gap, t + s * dt, strength)
+                    looks.append(G.PassView(photo, depth, torch.ones(H, W, dtype=torch.bool), vm, K, t + s * dt))
+            t += dt
+        t += 6.0
+    return keys, gts, looks
+
+
+def test_look_frames_bring_more_looks_and_closer_targets():
+    """A video's frames between the keyframes are further looks at the light: gathered from,
+    they raise each keyframe's independent looks and bring its target closer to the truth; the
+    keyframes-only count is the one the keyframes give alone."""
+    keys, gts, looks = video()
+    n, m = len(keys), len(looks)
+    ids = list(range(n))
+    base = P.PassSettings(pass_seconds=0.4, light_seconds=0.1)
+    alone, info0 = P.pass_targets(keys, base, ids=ids)
+    frames = keys + looks
+    wide = np.zeros((n + m, n + m))
+    wide[:n, :n] = G.overlap_matrix(keys)
+    wide[:n, n:] = G.overlap_block(keys, looks)
+    s = P.with_looks(base, [v.time for v in frames])
+    assert s.pass_seconds == pytest.approx(0.1) and s.max_frames == P.LOOK_MAX_FRAMES
+    both, info = P.pass_targets(frames, s, ids=ids, overlap=wide, sources=list(range(n + m)),
+                                keyframes=set(ids))
+    assert np.median(info["looks"]) > 1.5 * np.median(info0["looks"])
+    assert np.median(info["looks_keyframes"]) <= np.median(info["looks"])
+    mid = [k for k in ids if info0["share"][k] > 0.5]
+    got0 = np.mean([psnr(alone[k].clamp(0, 1), gts[k]) for k in mid])
+    got = np.mean([psnr(both[k].clamp(0, 1), gts[k]) for k in mid])
+    assert got > got0 + 0.5, (got0, got)
+
+
+def test_overlap_block_is_the_overlap_matrix_between_two_sets():
+    keys, _, looks = video(rows=1, per_row=3, between=1)
+    frames = keys + looks
+    full = G.overlap_matrix(frames)
+    block = G.overlap_block(keys, looks)
+    assert np.allclose(block, full[:len(keys), len(keys):])
+
+
+def test_a_frame_placed_off_lines_up_worse_than_one_placed_right():
+    """The look frames' check: a frame warped into its keyframe through the keyframe's depth
+    lines up on the texture where its pose is right, whatever the light did between them, and
+    loses it when the pose is a few pixels off."""
+    key = G.PassView(*_frame_view(0.0, 0.0, 0.0))
+    right = G.PassView(*_frame_view(0.1, 0.0, 0.4))       # moved 10 cm, the light moved on
+    photo, depth, covered, vm, K, t = _frame_view(0.1, 0.0, 0.4)
+    off = vm.clone()
+    off[0, 3] += 0.06   # its pose 6 cm (3 pixels) off
+    wrong = G.PassView(photo, depth, covered, off, K, t)
+    good, bad = G.alignment(key, right), G.alignment(key, wrong)
+    assert good > 0.5 and bad < 0.5 * good, (good, bad)
+
+
+def _frame_view(x: float, y: float, t: float):
+    photo, _, depth, vm, K = frame(x, y, t, 0.9)
+    return photo, depth, torch.ones(H, W, dtype=torch.bool), vm, K, t

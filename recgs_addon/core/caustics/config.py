@@ -28,6 +28,8 @@ CAUSTIC_MODES = ("recgs", "filter2d", "joint")
 ESTIMATORS = ("auto", "lowpass", "passes", "consensus", "lightfield", "likelihood")
 #: The pass estimator's statistics (passes.py): each frame's light modelled, or the floor's mean.
 PASS_STATISTICS = ("field", "floor")
+#: Look frames (a video's frames between the keyframes, looks.json): gathered from where the survey has them, or not.
+LOOKS = ("auto", "off")
 #: Whether RecGS looks for caustics before removing any (light.py): ``auto`` removes them only
 #: where the survey shows light that moves over the seabed; ``on`` runs the loop regardless.
 FIND_CAUSTICS = ("auto", "on")
@@ -58,6 +60,8 @@ class CausticConfig:
                                          # | lightfield: low band + one-sided coherent light over a floor (lightfield.py)
     pass_statistic: str = "field"        # passes: field = each frame's light modelled, then the colour | floor
     pass_min: int = 1                    # passes: independent passes a pixel needs (fewer: the low-pass target)
+    looks: str = "auto"                  # passes: auto = gather the light also from the survey's look frames
+                                         # (looks.json: a video's frames between the keyframes) | off
     lf_lambda: float = 0.05              # lightfield: TV weight (log light per pixel of edge)
     lf_tau: float = 0.02                 # lightfield: dead band (log light) below which light is not taken out
     light_sigma: float = 1.0             # likelihood: blur (pixels at 320 px wide, scaled with the image) of a view's light
@@ -69,7 +73,7 @@ class CausticConfig:
 
     #: Settings added since a release, with the value that reproduces runs saved before them.
     _BEFORE = {"caustic_dc": True, "robust_k": 0.0, "gain_restore": False, "estimator": "lowpass", "fit_loss": "l1",
-               "caustics": "on", "pass_statistic": "floor", "pass_min": 3}
+               "caustics": "on", "pass_statistic": "floor", "pass_min": 3, "looks": "off"}
 
     @classmethod
     def from_dict(cls, d: dict) -> "CausticConfig":
@@ -97,6 +101,8 @@ class CausticConfig:
             raise RecGSError(f"light-field TV weight and dead band must be >= 0, got {self.lf_lambda}, {self.lf_tau}")
         if self.pass_statistic not in PASS_STATISTICS:
             raise RecGSError(f"unknown pass statistic {self.pass_statistic!r} (choose from {', '.join(PASS_STATISTICS)})")
+        if self.looks not in LOOKS:
+            raise RecGSError(f"unknown look-frames setting {self.looks!r} (choose from {', '.join(LOOKS)})")
         if self.pass_min < 1:
             raise RecGSError(f"the passes a pixel needs must be at least 1, got {self.pass_min}")
         if self.fit_loss not in ("l1", "l2"):

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ..io.frames import read_frame_times
+from ..io.looks import MAX_BRACKET_S, look_reader, place_looks, read_looks
 from ..model.colour import linear_to_srgb, srgb_to_linear
 from ..model.lamp import Lamp
 from ..train.data import view_tensors
@@ -46,6 +47,11 @@ MODEL_FREE_SHARE = 0.99
 #: 0.006 on a survey without caustics, from misregistered texture; 0.37 under light networks)
 #: below which there are no caustics to remove.
 LIGHT_FLOOR = 0.03
+#: A look frame is gathered from where it lines up with its nearest keyframe at least this share
+#: as well as keyframes next in time line up with each other (their median over up to
+#: LOOK_REFERENCE_PAIRS pairs; ``Estimates._aligned_looks``).
+LOOK_ALIGNMENT = 0.8
+LOOK_REFERENCE_PAIRS = 16
 
 
 def choose_estimator(data) -> tuple[str, str]:
@@ -282,9 +288,21 @@ class Estimates:
                 v.covered = v.covered & ~v.ambiguous
         parts["geometry"] = time.perf_counter() - t - sum(parts.values())
         settings = passes.settings_for(light, statistic=self.ccfg.pass_statistic, min_passes=self.ccfg.pass_min)
+        # the look frames (a video's frames between the keyframes) are gathered from as the
+        # training frames are; they gather nothing themselves
+        looks, look_info = self._look_views(ids, scale, pts, check)
+        frames, sources, wide = views, train, overlap
+        if looks:
+            n, m = len(views), len(looks)
+            wide = np.zeros((n + m, n + m))
+            wide[:n, :n] = overlap
+            wide[np.ix_(train, range(n, n + m))] = geometry.overlap_block([views[k] for k in train], looks)
+            frames, sources = views + looks, train + list(range(n, n + m))
+            settings = passes.with_looks(settings, [v.time for v in frames])
+        parts["looks"] = time.perf_counter() - t - sum(parts.values())
         # with the water modelled, the frames' colours are compared at each frame's own range
-        est, wts, info = passes.pass_estimates(views, settings, ids=train, overlap=overlap, sources=train, water=water,
-                                               check=check)
+        est, wts, info = passes.pass_estimates(frames, settings, ids=train, overlap=wide, sources=sources, water=water,
+                                               check=check, keyframes=set(train) if looks else None)
         est = [self._lift(_relit(e, lit, k), i, scale) for e, k, i in zip(est, train, data.train_ids)]
         wts = [_resize(w, *data.sizes[i][::-1]) for w, i in zip(wts, data.train_ids)]
         parts["targets"] = time.perf_counter() - t - sum(parts.values())
@@ -300,6 +318,9 @@ class Estimates:
                           "scale": scale, "abstained": round(float(np.mean(abstained)), 4) if abstained else 0.0,
                           "part_seconds": {k: round(v, 2) for k, v in parts.items()},
                           "median_looks": round(float(np.median(info["looks"])), 2), "statistic": settings.statistic,
+                          **({"look_frames": {**look_info, **({"median_looks_keyframes": round(float(np.median(
+                              info["looks_keyframes"])), 2)} if info.get("looks_keyframes") else {})}}
+                             if look_info else {}),
                           "pass_seconds": settings.pass_seconds, "seconds": seconds,
                           **{k: v for k, v in light.items() if k != "correlation_s"},
                           "share_per_frame": {data.scene.cameras[i].name: round(float(x), 3)
@@ -328,6 +349,10 @@ class Estimates:
         photo is evened by it before frames are compared: a frame's vignetted edge is dark because
         of the lens, not the light on the seabed, and the floor of the light would take it.
         Returns each view's log gain (to light the estimates again), or None."""
+        return self._even_photos(views, [self.data.camera(i, scale) for i in ids])
+
+    def _camera_light(self) -> Optional[Lamp]:
+        """The light fixed to the camera the frames are evened by (:meth:`_even_the_light`), or None."""
         tr = self.trainer
         lamp = tr.lamp
         light = tr.light or {}
@@ -335,16 +360,77 @@ class Estimates:
             r0 = centre_range(self.data)
             if r0 is not None:
                 lamp = Lamp(r0, light["pattern_coef"], *light["range_coef"][:2], device=tr.device)
+        return lamp
+
+    def _even_photos(self, views: list, cams: list) -> Optional[list]:
+        """Even the photos of ``views`` (cameras ``cams``) by :meth:`_camera_light`; their log gains, or None."""
+        lamp = self._camera_light()
         if lamp is None:
             return None
         gains = []
         with torch.no_grad():
-            for v, i in zip(views, ids):
-                cam = self.data.camera(i, scale)
-                lg = lamp.log_gain(cam.width, cam.height, cam.cx, cam.cy, geometry.depth_map(v) * tr.ray_len(cam))
+            for v, cam in zip(views, cams):
+                lg = lamp.log_gain(cam.width, cam.height, cam.cx, cam.cy,
+                                   geometry.depth_map(v) * self.trainer.ray_len(cam))
                 v.photo = linear_to_srgb((srgb_to_linear(v.photo.clamp(0, 1)) / torch.exp(lg).unsqueeze(-1)).clamp(0, 1))
                 gains.append(lg)
         return gains
+
+    def _look_views(self, ids: list[int], scale: int, points: torch.Tensor, check) -> tuple[list, Optional[dict]]:
+        """The survey's look frames (core/io/looks.py) as frames to gather from, at 1 / ``scale``
+        of the training size: placed (their own pose, or between the keyframes before and after),
+        their depth from the survey's sparse points and the model, evened as the keyframes are.
+        Frames nearest in time to a held-out keyframe are left out (they would carry its light
+        into the training targets). Returns (views, what was read, placed and used), or ([],
+        None) where the survey has no look frames or they are off."""
+        if self.ccfg.looks == "off":
+            return [], None
+        data, tr = self.data, self.trainer
+        found = read_looks(data.scene.scene_dir)
+        if found is None:
+            return [], None
+        t0 = time.perf_counter()
+        info: dict = {"listed": found.listed, "missing": len(found.missing), "used": 0}
+        read = look_reader(data.scene.scene_dir, bool(getattr(data.scene, "undistorted", False)))
+        times = read_frame_times(data.scene.scene_dir) or {}
+        keys = [data.camera(i, scale) for i in ids]
+        placed, counts = place_looks(found.looks, keys, [times.get(c.name) for c in keys])
+        info.update(counts)
+        test = set(data.test_ids)
+        kept = [(lk, cam, k) for lk, cam, k in placed if ids[k] not in test]
+        info["near_heldout"] = len(placed) - len(kept)
+        out, cams = [], []
+        for lk, cam, k in kept:
+            check()
+            photo = torch.from_numpy(read(lk, cam)).to(tr.device)
+            render = tr.render_camera(cam)
+            covered = render.alpha > 0.5
+            keep = tr.counts(ids[k], scale)   # the nearest keyframe's overlay (the same camera)
+            viewmat, K = view_tensors(cam, tr.device)
+            out.append(geometry.PassView(photo, render.depth / render.alpha.clamp_min(1e-6),
+                                         covered if keep is None else covered & keep, viewmat, K, lk.time))
+            cams.append(cam)
+        geometry.prior_geometry(out, points)
+        self._even_photos(out, cams)
+        out, info["misplaced"] = self._aligned_looks(views, out, [k for _, _, k in kept])
+        info.update(used=len(out), seconds=round(time.perf_counter() - t0, 2))
+        return out, info
+
+    def _aligned_looks(self, views: list, looks: list, near: list[int]) -> tuple[list, int]:
+        """The look frames that line up with their nearest keyframe (``near``: its position in
+        ``views``) as well as :data:`LOOK_ALIGNMENT` of how keyframes next in time line up with
+        each other (:func:`.geometry.alignment`): a frame placed off (interpolated across a
+        turn, a jolt of the camera) would show its misregistration as light. Returns (those
+        frames, how many were left out)."""
+        order = sorted((v.time, k) for k, v in enumerate(views) if v.time is not None)
+        pairs = [(a, b) for (ta, a), (tb, b) in zip(order, order[1:]) if tb - ta <= MAX_BRACKET_S]
+        step = max(1, len(pairs) // LOOK_REFERENCE_PAIRS)
+        ref = [x for x in (geometry.alignment(views[a], views[b]) for a, b in pairs[::step]) if x is not None]
+        if not ref:
+            return looks, 0
+        floor = LOOK_ALIGNMENT * float(np.median(ref))
+        kept = [v for v, k in zip(looks, near) if (geometry.alignment(views[k], v) or -1.0) >= floor]
+        return kept, len(looks) - len(kept)
 
     def _fit_views(self) -> list[int]:
         """likelihood: the training views a refit renders: all of a small survey, an evenly

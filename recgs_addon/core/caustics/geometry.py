@@ -127,6 +127,36 @@ def overlap_matrix(views: Sequence[PassView], depth_tol: float = DEPTH_TOL) -> n
     return out
 
 
+def overlap_block(rows: Sequence[PassView], cols: Sequence[PassView], depth_tol: float = DEPTH_TOL) -> np.ndarray:
+    """(len(rows), len(cols)) share of each frame of ``rows``' covered grid pixels that each of
+    ``cols`` sees (as :func:`overlap_matrix`, between two sets of frames: the keyframes and the
+    look frames they gather from)."""
+    out = np.zeros((len(rows), len(cols)))
+    depths = [depth_map(v) for v in cols]
+    for i, vi in enumerate(rows):
+        pts = _grid_points(vi)
+        if len(pts) == 0:
+            continue
+        for j, vj in enumerate(cols):
+            out[i, j] = float(_sees(pts, vj, depths[j], depth_tol).float().mean())
+    return out
+
+
+def alignment(vi: PassView, vj: PassView, radius: int = SWEEP_RADIUS) -> Optional[float]:
+    """How well frame ``vj`` lines up with frame ``vi`` through ``vi``'s depth: the median
+    windowed correlation (:func:`zncc`) of the log grey of ``vi``'s photo and of ``vj``'s warped
+    into it, over the textured pixels both see (moving light scales the grey level, which the
+    correlation does not see; a frame placed a few pixels off loses it on the texture). None
+    where they share fewer than 100 such pixels."""
+    other, ok = warp(vi, vj)
+    a, b = log_grey(vi.photo), log_grey(other)
+    textured = box((a - box(a[None], radius)[0])[None] ** 2, radius)[0].sqrt() >= TEXTURE_MIN
+    use = ok & textured
+    if int(use.sum()) < 100:
+        return None
+    return float(zncc(a[None], b[None], radius)[0][use].median())
+
+
 def warp(vi: PassView, vj: PassView, depth_tol: float = DEPTH_TOL,
          image: Optional[torch.Tensor] = None,
          points: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -59,7 +59,7 @@ Shapes: photos and targets (H, W, 3) float32 sRGB in [0, 1]; frames are ``geomet
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Optional, Sequence
 
 import numpy as np
@@ -103,6 +103,22 @@ def settings_for(light: dict, **fields) -> PassSettings:
     than its correlation time are one pass, looks counted with its decorrelation time."""
     measured = {"pass_seconds": light.get("correlation_s"), "light_seconds": light.get("light_seconds")}
     return PassSettings(**{k: v for k, v in measured.items() if v is not None}, **fields)
+
+
+#: With look frames a frame gathers from at most this many frames (24 without: a video's frames
+#: between the keyframes bring more independent looks than the keyframes' passes hold).
+LOOK_MAX_FRAMES = 48
+
+
+def with_looks(s: PassSettings, times: Sequence[Optional[float]]) -> PassSettings:
+    """The settings where look frames join the keyframes (frames at ``times``): frames closer
+    in time than the light's decorrelation time (not than the keyframes' interval, the finest
+    lag the keyframes alone could measure) are one pass, and a frame gathers from up to
+    :data:`LOOK_MAX_FRAMES`."""
+    t = np.sort(np.asarray([x for x in times if x is not None], float))
+    step = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    return replace(s, pass_seconds=min(s.pass_seconds, max(s.light_seconds, step)),
+                   max_frames=max(s.max_frames, LOOK_MAX_FRAMES))
 
 
 def _linear(image: torch.Tensor) -> torch.Tensor:
@@ -203,7 +219,8 @@ def gather(i: int, views: Sequence[PassView], groups: list[list[int]], depth_tol
 def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] = None,
                    ids: Optional[Sequence[int]] = None, overlap: Optional[np.ndarray] = None,
                    sources: Optional[Sequence[int]] = None, gains: Optional[dict] = None,
-                   water: Optional[dict] = None, check: Optional[Callable[[], None]] = None):
+                   water: Optional[dict] = None, check: Optional[Callable[[], None]] = None,
+                   keyframes: Optional[set] = None):
     """The passes' caustic-free estimate of frames ``ids`` (default all; module docstring) and
     where to use it: (estimates (sRGB, list of (H, W, 3)), weights (list of (H, W) in [0, 1]:
     1 where at least ``min_passes`` passes saw the pixel, 0 where fewer than ``min_passes - 1``
@@ -216,18 +233,24 @@ def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] =
     frames alone); ``gains``: the calibration to use (default: made from ``ids``' own photos);
     ``water``: the fitted water's coefficients, if the run models it (:func:`gather`): the
     light's floor is then taken on the direct light at each frame's own range. ``check()`` is
-    called before each frame's gather (it may raise to give the work up)."""
+    called before each frame's gather (it may raise to give the work up). ``keyframes``: where
+    some sources are look frames, the frames that are not; ``info["looks_keyframes"]`` then
+    counts each frame's looks as the keyframes alone would give them."""
     s = settings or PassSettings()
     ids = list(range(len(views))) if ids is None else list(ids)
     overlap = overlap_matrix(views, s.depth_tol) if overlap is None else overlap
     stats, counts, passes, owns, veils = [], [], [], [], []
     groups = {i: choose_passes(i, views, overlap, s, sources) for i in ids}
-    looks = []
+    looks, key_looks = [], []
     for i in ids:
         if check is not None:
             check()
         samples, valid, npass, veil = gather(i, views, groups[i], s.depth_tol, water)
-        looks.append(effective_looks(valid, [views[j].time for g in groups[i] for j in g], s.light_seconds))
+        order = [j for g in groups[i] for j in g]
+        looks.append(effective_looks(valid, [views[j].time for j in order], s.light_seconds))
+        if keyframes is not None:
+            rows = [k for k, j in enumerate(order) if j in keyframes]
+            key_looks.append(effective_looks(valid[rows], [views[order[k]].time for k in rows], s.light_seconds))
         veils.append(veil)
         sigma = s.floor_sigma * views[i].photo.shape[1] / 320.0
         stats.append(floor_statistic(samples, valid, s.floor_tol, sigma, s.own_weight))
@@ -253,6 +276,8 @@ def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] =
         weights.append(w)
         info["passes"].append(float(passes[k][cov].float().median()) if cov.any() else 0.0)
         info["looks"].append(float(looks[k][cov].median()) if cov.any() else 0.0)
+        if keyframes is not None:
+            info.setdefault("looks_keyframes", []).append(float(key_looks[k][cov].median()) if cov.any() else 0.0)
         info["share"].append(float(w.mean()))
     return estimates, weights, info
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..caustics.config import ESTIMATORS, FIND_CAUSTICS, MODE_INFO, PASS_STATISTICS, CausticConfig
+from ..caustics.config import ESTIMATORS, FIND_CAUSTICS, LOOKS, MODE_INFO, PASS_STATISTICS, CausticConfig
 from ..train.config import LAMP_MODES, MEDIUM_MODES, TrainConfig
 from ..train.strategies import DEFAULT_STRATEGY, STRATEGIES, CloneSplit
 from .scene import EAGER, IMAGE_FOLDER, SCENE_DIR
@@ -159,6 +159,9 @@ TRAIN_OPTIONS = OptionTable([
            group=_CAUSTICS),
     Option("--pass-min", f"passes: independent passes a pixel needs for its target to come from them (fewer: "
                          f"the low-pass target; default {CausticConfig.pass_min})", type=int, group=_CAUSTICS),
+    Option("--looks", "passes: auto (default) gathers the light also from the survey's look frames (looks.json "
+                      "and looks/: a video's frames between the keyframes, each a further look at the light; they "
+                      "do not train); off: the keyframes alone", choices=LOOKS, group=_CAUSTICS),
     Option("--lf-lambda", f"lightfield: TV weight (default {CausticConfig.lf_lambda})", type=float, group=_CAUSTICS),
     Option("--lf-tau", f"lightfield: dead band in log light (default {CausticConfig.lf_tau})", type=float,
            group=_CAUSTICS),

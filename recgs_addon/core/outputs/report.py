@@ -41,7 +41,26 @@ def _passes_row(p: dict) -> str:
             f"{p.get('light_std')} log units, frames under {p.get('pass_seconds')} s apart one pass"
             + (f", its decorrelation time {p['light_seconds']:g} s" if p.get("light_seconds") else "")
             + (f"; the passes abstained on {100 * p['abstained']:.1f} % of the covered pixels, whose depth is "
-               "ambiguous (repetitive texture, grazing views)" if p.get("abstained") else ""))
+               "ambiguous (repetitive texture, grazing views)" if p.get("abstained") else "")
+            + _looks_text(p.get("look_frames")))
+
+
+def _looks_text(lk: Optional[dict]) -> str:
+    """The look frames' part of the passes' cell: what was read, placed and used, and what it gave."""
+    if not lk:
+        return ""
+    if lk.get("reason"):
+        return f"; look frames: {lk['listed']} listed, none used ({lk['reason']})"
+    dropped = [f"{lk[k]} {what}" for k, what in (("missing", "missing from looks/"),
+                                                   ("unplaced", "with no keyframes close in time to place them by"),
+                                                   ("near_heldout", "nearest a held-out keyframe"))
+               if lk.get(k)]
+    placed = ", ".join(f"{lk[k]} {what}" for k, what in (("given", "posed in looks.json"),
+                                                           ("interpolated", "placed between keyframes")) if lk.get(k))
+    before = lk.get("median_looks_keyframes")
+    return (f"; look frames: {lk.get('used', 0)} of {lk['listed']} gathered from ({placed or 'none placed'}"
+            + (f"; left out: {', '.join(dropped)}" if dropped else "") + f"; {lk.get('seconds', 0):g} s)"
+            + (f", the keyframes alone {before:g} independent looks" if before is not None else ""))
 
 
 def write_run_report(out: Path, metrics: dict, method=None, examples: int = 3) -> Path:

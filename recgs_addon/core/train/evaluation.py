@@ -99,6 +99,17 @@ class EvaluationMixin:
             self._render_s = dt if self._render_s is None else 0.8 * self._render_s + 0.2 * dt
         return out
 
+    @torch.no_grad()
+    def render_camera(self, cam):
+        """The :class:`~..render.rasterizer.RenderOutput` of any camera ``cam`` (a
+        :class:`~..model.cameras.Camera` at its own size: a look frame), its ``rgb`` in true
+        colour (no water, no lamp: what is wanted of such a render is its depth)."""
+        viewmat, K = view_tensors(cam, self.device)
+        p = self.params
+        return render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
+                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
+                      background=self._background(), compiled=self.compiler.compiled())
+
     def render_view(self, index: int, seen: bool = True) -> torch.Tensor:
         """(H, W, 3) render of camera ``index`` at the training resolution (not clamped), as
         seen through the water or (``seen=False``) in true colour."""
