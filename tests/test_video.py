@@ -8,6 +8,7 @@ choice must keep each view once, a sharp copy, and the solved cameras must match
 ones after a similarity alignment.
 """
 import json
+import math
 import signal
 import subprocess
 import sys
@@ -279,6 +280,31 @@ def test_video_command_chooses_sharp_distinct_frames(clip, imported):
     from recgs_addon.core.io.images import image_size
     assert image_size(out / "images" / names[0]) == (256, 192)
     assert not list(out.glob(".*")), "temporary files left in the survey"
+
+
+def test_video_import_keeps_look_frames_between_the_keyframes(clip, imported):
+    """Beside the keyframes the import keeps a look frame every LOOKS_EVERY_S seconds of the
+    clip between the first keyframe and the last, none of them a keyframe, in looks/ with their
+    times on the keyframes' clock, in a looks.json the look-frame reader takes."""
+    from recgs_addon.core.capture.video import LOOKS_EVERY_S
+    from recgs_addon.core.io.looks import read_looks
+    out, r, events = imported
+    record = json.loads((out / "frames.json").read_text())
+    keys = {f["index"] for f in record["frames"]}
+    first, last = record["frames"][0]["time_s"], record["frames"][-1]["time_s"]
+    found = read_looks(out)
+    assert found is not None and found.missing == [] and found.listed == record["looks"]["frames"]
+    doc = json.loads((out / "looks.json").read_text())
+    idx = [lk["index"] for lk in doc["looks"]]
+    assert idx and not keys & set(idx) and idx == sorted(idx)
+    times = [lk.time for lk in found.looks]
+    assert first < min(times) and max(times) < last
+    for lk in doc["looks"]:
+        assert lk["time_s"] == pytest.approx(lk["index"] / FPS, abs=1e-3)
+    spacing = math.ceil(LOOKS_EVERY_S * FPS - 1e-9) / FPS   # whole frames apart, at least LOOKS_EVERY_S
+    assert np.diff(times).min() >= spacing - 1e-3
+    assert len(times) >= (last - first) / spacing - len(keys) - 2
+    assert sorted(p.name for p in (out / "looks").iterdir()) == sorted(lk.name for lk in found.looks)
 
 
 def test_video_command_solves_the_cameras(clip, imported):

@@ -134,8 +134,11 @@ def cmd_video(args) -> int:
                                    ("--threads", args.threads, 1, 1024), ("--max-side", args.max_side, 0, 10 ** 6)):
         if not low <= value <= high:
             return fail(f"{name} must be {low} to {high}, got {value}")
+    if not 0.0 <= args.look_every < math.inf:
+        return fail(f"--look-every is seconds between look frames, 0 or more, got {args.look_every}")
     options = VideoOptions(frames=args.frames, every_s=args.every, step=args.step, max_side=args.max_side,
-                           image_format=args.format, jpeg_quality=args.quality, threads=args.threads)
+                           image_format=args.format, jpeg_quality=args.quality, threads=args.threads,
+                           looks_every_s=args.look_every)
     stop = StopSignals().install()
     if not args.verbose:
         pycolmap.logging.minloglevel = 3   # COLMAP's INFO to ERROR lines: ours say the same, briefly

@@ -47,6 +47,17 @@ FRAMES_JSON = "frames.json"
 PROGRESS_EVERY_S = 0.5
 #: Name digits of the frames at least (a 60 fps clip of 4.6 hours fits 6 digits).
 NAME_DIGITS = 6
+#: Look frames (core/io/looks.py): a frame of the clip is kept beside the keyframes every this
+#: many seconds (caustics forget themselves in 0.1-0.5 s: a frame a tenth of a second after the
+#: last is a new look at the light, or nearly), ...
+LOOKS_EVERY_S = 0.1
+#: ... with its long side at most this (px; the caustic work reads them at the training size or
+#: below), ...
+LOOK_MAX_SIDE = 1280
+#: ... and at most this many of them (a thinned, even spread of the rest): 10 a second of a
+#: 3-minute clip, some 300-500 MB of JPEGs at 1280 px.
+MAX_LOOKS = 1800
+LOOKS_JSON = "looks.json"
 
 
 @dataclass
@@ -68,10 +79,14 @@ class VideoOptions:
     threads: int = 2
     duplicate_mad: float = fc.DUPLICATE_MAD
     dark_level: float = fc.DARK_LEVEL
+    #: Look frames beside the keyframes, one every this many seconds (0: none; :data:`LOOKS_EVERY_S`).
+    looks_every_s: float = LOOKS_EVERY_S
 
     def settings(self) -> dict:
-        """What the frame choice depends on (a rerun reuses frames only when these match)."""
-        return {k: v for k, v in asdict(self).items() if k != "threads" and not (k == "step" and self.every_s)}
+        """What the frame choice depends on (a rerun reuses frames only when these match; the
+        look frames do not change which frames train)."""
+        return {k: v for k, v in asdict(self).items()
+                if k not in ("threads", "looks_every_s") and not (k == "step" and self.every_s)}
 
     @property
     def by_motion(self) -> bool:
@@ -302,12 +317,15 @@ def import_frames(clip: str | Path, survey: str | Path, options: Optional[VideoO
     created = not survey.exists()
     make_folder(survey, "survey folder")
     staging = survey / ".images.partial"
+    look_staging = survey / ".looks.partial"
+    looks = None
     try:
         tries = []
         while True:
-            shutil.rmtree(staging, ignore_errors=True)
-            staging.mkdir()
-            record = _decode_and_write(av, info, staging, o, windows, report, stop)
+            for d in (staging, look_staging):
+                shutil.rmtree(d, ignore_errors=True)
+                d.mkdir()
+            record, looks = _decode_and_write(av, info, staging, o, windows, report, stop, look_staging)
             tries.append({"step": o.step, "frames": len(record["frames"])})
             step = shorter_step(record, o)
             if step is None:
@@ -323,13 +341,43 @@ def import_frames(clip: str | Path, survey: str | Path, options: Optional[VideoO
         if images.exists():
             shutil.rmtree(images)
         staging.rename(images)
+        _keep_looks(survey, look_staging, record, looks, o)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+        shutil.rmtree(look_staging, ignore_errors=True)
         if created and not any(survey.iterdir()):   # a failed first import leaves no empty folder
             survey.rmdir()
     with atomic_path(survey / FRAMES_JSON, "frame list") as tmp:
         tmp.write_text(json.dumps(record, indent=1), encoding="utf-8")
     return record
+
+
+def _keep_looks(survey: Path, staging: Path, record: dict, looks: list[dict], o: VideoOptions) -> None:
+    """Put the look frames (``looks``, written to ``staging``) in ``survey/looks`` with
+    ``looks.json``: those between the first keyframe and the last that are no keyframe, thinned
+    evenly to :data:`MAX_LOOKS`; ``record["looks"]`` says how many and how they were taken. An
+    import without look frames removes any an earlier import left."""
+    folder, listing = survey / "looks", survey / LOOKS_JSON
+    listing.unlink(missing_ok=True)
+    if folder.exists():
+        shutil.rmtree(folder)
+    keys = record["frames"]
+    if not o.looks_every_s or not keys:
+        return
+    first, last = keys[0]["time_s"], keys[-1]["time_s"]
+    taken = {f["index"] for f in keys}
+    between = [lk for lk in looks if first < lk["time_s"] < last and lk["index"] not in taken]
+    kept = [between[i] for i in fc.thin(len(between), MAX_LOOKS)] if len(between) > MAX_LOOKS else between
+    names = {lk["name"] for lk in kept}
+    for f in staging.iterdir():
+        if f.name not in names:
+            f.unlink()
+    staging.rename(folder)
+    record["looks"] = {"frames": len(kept), "every_s": o.looks_every_s, "thinned": len(between) - len(kept),
+                       "max_side": LOOK_MAX_SIDE}
+    with atomic_path(listing, "look frame list") as tmp:
+        tmp.write_text(json.dumps({"source": record["source"], "fps": record["fps"], "every_s": o.looks_every_s,
+                                   "looks": kept}, indent=1), encoding="utf-8")
 
 
 def shorter_step(record: dict, o: VideoOptions) -> Optional[float]:
@@ -367,7 +415,8 @@ def _enough_frames(info: ClipInfo, record: dict) -> None:
     raise VideoError(f"{info.path}: {why}; a survey needs at least {fc.MIN_FRAMES}: {todo}")
 
 
-def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, windows, report, stop) -> dict:
+def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, windows, report, stop,
+                      look_folder: Optional[Path] = None) -> tuple[dict, list[dict]]:
     container, stream = _open(info.path)
     stream.thread_type = "AUTO"
     stream.thread_count = max(1, o.threads)
@@ -379,6 +428,17 @@ def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, windows
     out_size = None
     t_report = time.monotonic()
     index, t_first, brightness = 0, None, []
+    looks: list[dict] = []
+    last_look = -float("inf")
+
+    def write_look(frame, t: float) -> None:
+        lw, lh = output_size(frame.width, frame.height, min(o.max_side or LOOK_MAX_SIDE, LOOK_MAX_SIDE))
+        rgb = frame.reformat(width=lw, height=lh, format="rgb24", interpolation="AREA").to_ndarray()
+        if turns:
+            rgb = np.ascontiguousarray(np.rot90(rgb, turns))
+        name = f"frame_{index:0{digits}d}.jpg"
+        write_image(look_folder / name, rgb, quality=90)
+        looks.append({"name": name, "time_s": round(t, 4), "index": index})
 
     def write(cand: fc.Candidate) -> None:
         nonlocal out_size
@@ -408,6 +468,10 @@ def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, windows
                 brightness.append(level)
                 cand = fc.Candidate(index, t - t_first, fc.sharpness(grey), level, fc.thumbnail(grey), frame,
                                     fc.thumbnail(grey, fc.MOTION_SIDE) if o.by_motion else None)
+                if look_folder is not None and o.looks_every_s and t - t_first - last_look >= o.looks_every_s \
+                        and level >= o.dark_level:
+                    last_look = t - t_first
+                    write_look(frame, last_look)
                 for kept in chooser.add(cand):
                     write(kept)
                 index += 1
@@ -444,4 +508,4 @@ def _decode_and_write(av, info: ClipInfo, folder: Path, o: VideoOptions, windows
                       "dark_windows": s.dark, "dark_frames": s.dark_frames, "thinned": thinned,
                       "by": "motion" if o.by_motion else "time",
                       **({"moved": round(windows.moved, 4), "step": o.step} if o.by_motion else {})},
-            "frames": written}
+            "frames": written}, looks

@@ -40,6 +40,9 @@ VIDEO_OPTIONS = OptionTable([
                            why="0 = by the camera's motion, up to Max Frames")),
     Option("--max-side", "Long side of the written frames at most this many pixels (0: the clip's own size)",
            type=int, default=DEFAULT_MAX_SIDE, setting=Setting("Max Frame Side", minimum=0, soft_max=8192)),
+    Option("--look-every", "Keep a look frame (looks/, looks.json) every this many seconds between the keyframes: "
+                           "further looks at the light for caustic removal, which do not train (0: none)",
+           type=float, default=VideoOptions.looks_every_s, metavar="SECONDS"),
     Option("--format", "Image format of the frames", default=VideoOptions.image_format, choices=IMAGE_FORMATS),
     Option("--quality", "JPEG quality", type=int, default=JPEG_QUALITY),
     _CAMERA_MODEL,
