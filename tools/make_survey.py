@@ -23,6 +23,9 @@ Output folder::
     sfm/0/                  (only with --sfm) pycolmap's own reconstruction from images/
     survey.json             every parameter, the cameras, per-shot caustic phase and mean gain
     frames.json             (only with --caustic-motion smooth) each frame's time, as a video import writes it
+    looks/look_000_1.png .. (only with --look-frames K) the video's K frames between two shots, with
+    looks.json              caustics (no clean/ copy), and their times and true poses: the look
+                            frames a caustic estimator may gather from (recgs_addon/core/io/looks.py)
     README.md               short description of the dataset and the caustic model
 
 Caustic model
@@ -255,6 +258,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "drifts with time (video frames, --caustic-dt apart)")
     g.add_argument("--caustic-drift", default="0.01,0.004", help="smooth motion: drift in tile units per second")
     g.add_argument("--caustic-res", type=int, default=256, help="texture resolution (texels per tile)")
+    g.add_argument("--look-frames", type=int, default=0,
+                   help="smooth motion: render this many video frames between two shots as look frames "
+                        "(looks/, looks.json: poses interpolated between the shots', caustics at their own time)")
     g = p.add_argument_group("water (attenuation and backscatter; see tools/survey_water.py)")
     g.add_argument("--water", choices=("none",) + tuple(WATER_TYPES), default="none",
                    help="water between seabed and camera; clean/ stays the true colour without it")
@@ -298,6 +304,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         a.caustic_seed = a.seed
     if not 0.0 <= a.caustic_strength <= 1.0:
         p.error("--caustic-strength must be in [0, 1]")
+    if a.look_frames < 0 or (a.look_frames and a.caustic_motion != "smooth"):
+        p.error("--look-frames needs --caustic-motion smooth (frames of a video) and a count of 0 or more")
     if a.views < 1 or a.width < 8 or a.height < 8:
         p.error("need at least one view of at least 8 x 8 pixels")
     try:
@@ -310,9 +318,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 def prepare_output(out: Path) -> None:
     """Create the dataset folder, removing only outputs this script writes."""
     out.mkdir(parents=True, exist_ok=True)
-    for d in ("images", "clean", "sparse", "depth", "sfm"):
+    for d in ("images", "clean", "sparse", "depth", "sfm", "looks"):
         shutil.rmtree(out / d, ignore_errors=True)
-    for f in ("survey.json", "frames.json", "README.md", "database.db", "scene.blend"):
+    for f in ("survey.json", "frames.json", "looks.json", "README.md", "database.db", "scene.blend"):
         (out / f).unlink(missing_ok=True)
     for d in ("images", "clean", "sparse/0"):
         (out / d).mkdir(parents=True)
@@ -464,6 +472,54 @@ def render_views(args, out: Path, cams: list[Camera], rig: CausticRig, cam_ob, s
     return depths, colour_sources
 
 
+def look_cameras(args, cams: list[Camera]) -> tuple[list[Camera], list[float]]:
+    """The ``--look-frames`` video frames between each two consecutive shots: their cameras
+    (poses a share of the way between the two shots', :func:`interpolate_pose`) and times."""
+    from recgs_addon.core.model.cameras import interpolate_pose
+    k = args.look_frames
+    looks, times = [], []
+    for j in range(len(cams) - 1):
+        a, b = cams[j], cams[j + 1]
+        for m in range(1, k + 1):
+            s = m / (k + 1)
+            R, t = interpolate_pose(a.R, a.t, b.R, b.t, s)
+            looks.append(Camera(f"look_{j:03d}_{m}.png", a.width, a.height, a.fx, a.fy, a.cx, a.cy, R, t,
+                                camera_id=1, image_id=-1))
+            times.append((j + s) * args.caustic_dt)
+    return looks, times
+
+
+def render_looks(args, out: Path, looks: list[Camera], times: list[float], rig: CausticRig, cam_ob,
+                 first_shot: int) -> list[dict]:
+    """Render the look frames (caustics, the lamp and the water as the photos have them, no
+    ground truth) into looks/; returns their looks.json entries."""
+    from recgs_addon.core.model.cameras import rotmat_to_quat
+    (out / "looks").mkdir()
+    water = args.water_model
+    entries = []
+    with tempfile.TemporaryDirectory(prefix="make_survey_looks_") as tmp:
+        tmp = Path(tmp)
+        for m, (cam, t) in enumerate(zip(looks, times)):
+            t0 = time.time()
+            set_camera_pose(cam_ob, cam)
+            rig.set_shot(first_shot + m)
+            lin, depth = render_exr(tmp, "look_")
+            if args.lamp or args.vignette:
+                lin = lin * lamp_light(args, cam, depth)
+            if water is not None:
+                rng = depth * ray_lengths(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
+                lin = apply_water(lin, rng, water)
+            img = linear_to_srgb8(lin)
+            if args.overlay:
+                burn_time_stamp(img, t)
+            write_png(out / "looks" / cam.name, img)
+            entries.append({"name": cam.name, "time_s": round(t, 6),
+                            "qvec": [round(float(v), 12) for v in rotmat_to_quat(cam.R)],
+                            "tvec": [round(float(v), 12) for v in cam.t]})
+            log(f"look frame {m + 1}/{len(looks)} {cam.name} rendered in {time.time() - t0:.1f} s")
+    return entries
+
+
 def lamp_light(args, cam, depth: np.ndarray) -> np.ndarray:
     """(H, W, 3) the gain of ``--lamp`` (on the lamp path through ``--water``'s attenuation) and
     ``--vignette`` on a view (tools/survey_lamp.py)."""
@@ -551,13 +607,16 @@ def main(argv=None) -> int:
         f"terrain {terrain_size[0]:.1f} x {terrain_size[1]:.1f} m")
     drift = tuple(float(v) for v in args.caustic_drift.split(","))
     shots = caustic_shots(len(cams), args.caustic_seed, args.caustic_dt, args.caustic_motion, drift)
+    looks, look_times = look_cameras(args, cams) if args.look_frames else ([], [])
+    look_shots = caustic_shots(len(looks), args.caustic_seed, args.caustic_dt, args.caustic_motion, drift,
+                               times=look_times) if looks else []
     gains = [caustic_gain(args.caustic_pattern, args.caustic_res, s["time_s"], s["offset"],
                           args.caustic_seed, args.caustic_strength, args.caustic_blur / args.caustic_scale)
-             for s in shots]
+             for s in shots + look_shots]
 
     light_dir = light_direction(args.sun_tilt, args.sun_azimuth)
     rig, objects, obj_info = build_scene(args, hf, cams, terrain_size, light_dir)
-    for s, st in zip(shots, add_caustic_images(rig, gains)):
+    for s, st in zip(shots + look_shots, add_caustic_images(rig, gains)):
         s.update(st)
     denoise = configure_render(args)
     cam_ob = add_camera(cams[0])
@@ -567,6 +626,7 @@ def main(argv=None) -> int:
 
     t_render = time.time()
     depths, cleans = render_views(args, out, cams, rig, cam_ob, shots)
+    look_entries = render_looks(args, out, looks, look_times, rig, cam_ob, len(cams)) if looks else []
     t_render = time.time() - t_render
     if not args.clean:
         (out / "clean").rmdir()
@@ -591,6 +651,10 @@ def main(argv=None) -> int:
         from recgs_addon.core.io.frames import write_frame_times
         write_frame_times(out, {s["image"]: s["time_s"] for s in shots}, source="tools/make_survey.py",
                           fps=1.0 / args.caustic_dt)
+    if look_entries:   # the video's frames between the shots, as a look-frame import writes them
+        (out / "looks.json").write_text(json.dumps(
+            {"source": "tools/make_survey.py", "fps": (args.look_frames + 1) / args.caustic_dt,
+             "poses": "true (COLMAP cam_from_world: qvec w, x, y, z; tvec)", "looks": look_entries}, indent=1))
     (out / "README.md").write_text(dataset_readme(args, len(sparse["xyz"]), denoise))
     log(f"done in {time.time() - t_start:.1f} s (render {t_render:.1f} s)")
     return 0

@@ -194,22 +194,27 @@ def caustic_gain(kind: str, res: int, t: float, offset=(0.0, 0.0), seed: int = 0
     return g.astype(np.float32)
 
 
-def caustic_shots(n: int, seed: int, dt: float, motion: str = "random", drift=(0.01, 0.004)) -> list[dict]:
-    """Per-shot caustic phase: time ``t = i * dt`` (s) and an offset in tile units.
+def caustic_shots(n: int, seed: int, dt: float, motion: str = "random", drift=(0.01, 0.004),
+                  times=None) -> list[dict]:
+    """Per-shot caustic phase: time ``t = i * dt`` (s; or ``times``, n of them) and an offset in
+    tile units.
 
     ``motion="random"``: a random offset per shot, as photos taken at unrelated instants
     (each shot's light independent of the last). ``"smooth"``: as a video, the pattern drifts
     with the waves at ``drift`` tile units per second from one random start, so each frame's
-    light is a small step from the last (neighbouring frames share much of their pattern)."""
+    light is a small step from the last (neighbouring frames share much of their pattern); the
+    start depends on ``seed`` alone, so frames at other ``times`` (a video's frames between the
+    shots) see the same sea."""
     rng = np.random.default_rng([seed, 7])
+    t = np.arange(n) * dt if times is None else np.asarray(times, float)
     if motion == "smooth":
         start = rng.uniform(0, 1, 2)
-        offsets = start + np.outer(np.arange(n) * dt, np.asarray(drift, float))
+        offsets = start + np.outer(t, np.asarray(drift, float))
     elif motion == "random":
         offsets = rng.uniform(0, 1, (n, 2))
     else:
         raise ValueError(f"unknown caustic motion {motion!r} (random or smooth)")
-    return [{"time_s": i * dt, "offset": [float(offsets[i, 0]), float(offsets[i, 1])]} for i in range(n)]
+    return [{"time_s": float(t[i]), "offset": [float(offsets[i, 0]), float(offsets[i, 1])]} for i in range(n)]
 
 
 # ---------------------------------------------------------------------------------------------
