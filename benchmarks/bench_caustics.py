@@ -113,10 +113,11 @@ ROWS = ["--views", "64", "--width", "320", "--height", "240", "--lines", "6", "-
         "--sidelap", "0.65", "--caustic-motion", "smooth", "--caustic-dt", "0.33", "--save-depth"]
 SURVEYS.update({
     "rows-networks": ROWS + ["--seed", "71", "--caustic-pattern", "voronoi", "--caustic-strength", "0.9"],
-    # ... the same keyframes filmed as a video: three frames between two keyframes (12 frames a
-    # second), rendered as look frames with their true poses (looks/, looks.json), which the
-    # caustic estimator gathers light from; training keeps the 64 keyframes
-    "rows-looks": ROWS + ["--seed", "71", "--caustic-pattern", "voronoi", "--caustic-strength", "0.9",
+    # ... filmed as a video under light refracted by a rippled surface, which forgets itself in
+    # about a tenth of a second (the README's survey's light): three frames between two
+    # keyframes (12 frames a second) rendered as look frames with their true poses (looks/,
+    # looks.json), which the caustic estimator gathers light from; training keeps the 64 keyframes
+    "rows-looks": ROWS + ["--seed", "72", "--caustic-pattern", "refraction", "--caustic-strength", "0.8",
                           "--look-frames", "3"],
 })
 # A dive survey in deep water lit by a lamp on the camera (tools/survey_lamp.py): no sunlight

@@ -965,3 +965,70 @@ def test_a_cold_numba_cache_leaves_the_warm_up_its_share(caustic_scene, tmp_path
     better = "recgs" if recgs["psnr_gt"] > plain["psnr_gt"] else "plain"
     assert m["candidates"]["kept"] == better or abs(recgs["psnr_gt"] - plain["psnr_gt"]) < 0.2, m["candidates"]
     assert m["job_seconds"] <= 1.1 * 45, m["job_seconds"]
+
+
+def _with_looks(caustic_scene, tmp_path):
+    """A copy of the caustic survey filmed as a video: the keyframes one second apart
+    (frames.json), and beside each a look frame 0.3 s later from the same place under light
+    of its own (looks/, looks.json with its pose)."""
+    from recgs_addon.core.io.colmap import load_scene
+    from recgs_addon.core.io.frames import write_frame_times
+    from recgs_addon.core.model.cameras import rotmat_to_quat
+
+    root = tmp_path / "video"
+    shutil.copytree(caustic_scene, root)
+    cams = load_scene(root).cameras
+    write_frame_times(root, {c.name: float(k) for k, c in enumerate(cams)})
+    (root / "looks").mkdir()
+    entries = []
+    for k, c in enumerate(cams):
+        clean = torch.from_numpy(read_image(root / "clean" / c.name))
+        name = f"look_{k:02d}.png"
+        write_image(root / "looks" / name, (clean + _caustic_field(36, 48, k + 20.5)).clamp(0, 1).numpy())
+        entries.append({"name": name, "time_s": k + 0.3, "qvec": rotmat_to_quat(c.R).tolist(), "tvec": c.t.tolist()})
+    (root / "looks.json").write_text(json.dumps({"looks": entries}))
+    return root
+
+
+def test_the_passes_gather_from_look_frames_and_say_what_they_used(caustic_scene, tmp_path):
+    """A survey's look frames join the frames the passes gather from: placed by their poses,
+    those nearest a held-out keyframe left out, the rest gathered (more independent looks than
+    the keyframes give alone), all of it in the report's passes cell; --looks off reads none;
+    where the time limit fits only a few, that many are kept."""
+    from recgs_addon.core.outputs.report import _passes_row
+
+    root = _with_looks(caustic_scene, tmp_path)
+    m = make(root, estimator="passes", iterations=1, warmup=1, recurrence_steps=1)
+    g = m._make_pass_estimates()
+    assert g["estimates"] is not None
+    lf = m.pass_info["look_frames"]
+    held = len(m.data.test_ids)
+    assert lf["listed"] == 10 and lf["given"] == 10 and lf["near_heldout"] == held
+    assert lf["used"] + lf["misplaced"] == 10 - held and lf["used"] >= 10 - held - 2, lf
+    assert lf["median_looks_keyframes"] <= m.pass_info["median_looks"]
+    assert f"look frames: {lf['used']} of 10 gathered from (10 posed in looks.json" in _passes_row(m.pass_info)
+    off = make(root, estimator="passes", iterations=1, warmup=1, recurrence_steps=1, looks="off")
+    off._make_pass_estimates()
+    assert "look_frames" not in off.pass_info and off.max_looks == 0
+    # the plan: look frames beyond what the time limit fits are left out
+    few = make(root, estimator="passes", iterations=1, warmup=1, recurrence_steps=1)
+    keys, one = few.planned_work(1, looks=0), few.planned_work(1, looks=1)
+    assert few.max_looks == 10 and one.seconds > keys.seconds and one.bytes > keys.bytes and one.looks == 1
+    limit = (keys.seconds + 3.5 * (one.seconds - keys.seconds)) / 0.5   # the share fits the keyframes and 3 looks
+    assert few.fit_work(limit, None) is None and few.max_looks == 3 and few.pass_scale == 1
+    few.pass_deadline = None   # the limit above is a tiny one: let the work run to see what it keeps
+    few._make_pass_estimates()
+    assert few.pass_info["look_frames"]["thinned"] == 10 - held - 3 and few.pass_info["look_frames"]["used"] <= 3
+
+
+def test_look_frames_are_not_read_where_keyframes_next_in_time_share_their_light(caustic_scene, tmp_path, monkeypatch):
+    """Where keyframes next in time already share most of their light, the frames between them
+    saw it too: the passes read none and say why."""
+    from recgs_addon.core.caustics import passes
+
+    root = _with_looks(caustic_scene, tmp_path)
+    m = make(root, estimator="passes", iterations=1, warmup=1, recurrence_steps=1)
+    monkeypatch.setattr(passes, "SAME_LIGHT", 0.0)   # any shared light counts as the same
+    m._make_pass_estimates()
+    lf = m.pass_info["look_frames"]
+    assert lf["used"] == 0 and "share" in lf["reason"] and "saw the light they did" in lf["reason"]

@@ -135,3 +135,14 @@ def test_a_look_frame_is_read_as_the_keyframes_are_undistorted(tmp_path, model):
     assert np.abs(coarse(got) - coarse(want))[1:-1, 1:-1].mean() < 0.03, np.abs(coarse(got) - coarse(want)).mean()
     shifted = np.roll(want, 3, axis=1)   # what the check tells from: a frame 3 pixels off
     assert np.abs(coarse(shifted) - coarse(want))[1:-1, 1:-1].mean() > 0.03
+
+
+def test_posed_looks_of_a_survey_without_times_take_the_nearest_keyframe(tmp_path):
+    keys = [keyframe("k0.png", rot_z(0.0), [0, 0, 2]), keyframe("k1.png", rot_z(0.0), [3, 0, 2])]
+    R = rot_z(0.1)
+    entries = [{"name": "p.png", "time_s": 0.0, "qvec": rotmat_to_quat(R).tolist(), "tvec": (-R @ [2.5, 0, 2]).tolist()},
+               {"name": "q.png", "time_s": 0.0}]
+    write_looks(tmp_path, entries)
+    placed, counts = place_looks(read_looks(tmp_path).looks, keys, [None, None])
+    assert counts == {"given": 1, "interpolated": 0, "unplaced": 1}
+    assert placed[0][2] == 1 and np.allclose(placed[0][1].center, [2.5, 0, 2])

@@ -61,6 +61,12 @@ def probe_seconds() -> float:
     return _PROBE["s"]
 
 
+#: A look frame's cost, in units of a keyframe's of its size (it is read, placed, checked and
+#: gathered from, but neither swept nor gathered for; its photo, depth and mask stay in memory).
+LOOK_SECONDS_SHARE = 0.5
+LOOK_BYTES_PER_PIXEL = 40
+
+
 @dataclass
 class PassCost:
     """The pass estimator's expected cost on a survey."""
@@ -68,14 +74,20 @@ class PassCost:
     seconds: float
     bytes: int
     megapixels: float      # every frame's pixels the estimator reads, in millions
+    looks: int = 0         # ... of which look frames (core/io/looks.py)
 
     def summary(self) -> dict:
-        return {"seconds": round(self.seconds, 1), "bytes": int(self.bytes), "megapixels": round(self.megapixels, 2)}
+        return {"seconds": round(self.seconds, 1), "bytes": int(self.bytes), "megapixels": round(self.megapixels, 2),
+                "looks": self.looks}
 
 
-def pass_cost(sizes: list[tuple[int, int]], probe: Optional[float] = None) -> PassCost:
-    """:class:`PassCost` of the frames of ``sizes`` ((width, height) each: every frame the
-    estimator reads); ``probe``: :func:`probe_seconds` (measured here if not given)."""
+def pass_cost(sizes: list[tuple[int, int]], probe: Optional[float] = None, looks: int = 0,
+              look_size: Optional[tuple[int, int]] = None) -> PassCost:
+    """:class:`PassCost` of the frames of ``sizes`` ((width, height) each: every keyframe the
+    estimator reads) and ``looks`` look frames of ``look_size``; ``probe``: :func:`probe_seconds`
+    (measured here if not given)."""
     pixels = sum(w * h for w, h in sizes)
+    look_px = looks * (look_size[0] * look_size[1] if look_size else 0)
     p = probe_seconds() if probe is None else probe
-    return PassCost(p * UNITS_PER_MEGAPIXEL * pixels / 1e6, int(BYTES_PER_PIXEL * pixels), pixels / 1e6)
+    return PassCost(p * UNITS_PER_MEGAPIXEL * (pixels + LOOK_SECONDS_SHARE * look_px) / 1e6,
+                    int(BYTES_PER_PIXEL * pixels + LOOK_BYTES_PER_PIXEL * look_px), (pixels + look_px) / 1e6, looks)

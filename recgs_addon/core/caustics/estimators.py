@@ -290,7 +290,7 @@ class Estimates:
         settings = passes.settings_for(light, statistic=self.ccfg.pass_statistic, min_passes=self.ccfg.pass_min)
         # the look frames (a video's frames between the keyframes) are gathered from as the
         # training frames are; they gather nothing themselves
-        looks, look_info = self._look_views(ids, scale, pts, check)
+        looks, look_info = self._look_views(views, ids, scale, pts, check, light)
         frames, sources, wide = views, train, overlap
         if looks:
             n, m = len(views), len(looks)
@@ -376,12 +376,15 @@ class Estimates:
                 gains.append(lg)
         return gains
 
-    def _look_views(self, ids: list[int], scale: int, points: torch.Tensor, check) -> tuple[list, Optional[dict]]:
-        """The survey's look frames (core/io/looks.py) as frames to gather from, at 1 / ``scale``
-        of the training size: placed (their own pose, or between the keyframes before and after),
+    def _look_views(self, views: list, ids: list[int], scale: int, points: torch.Tensor,
+                    check, light: Optional[dict] = None) -> tuple[list, Optional[dict]]:
+        """The survey's look frames (core/io/looks.py) as frames to gather from for the keyframes
+        ``views`` (frames ``ids``), at 1 / ``scale`` of the training size: placed (their own pose, or between the keyframes before and after),
         their depth from the survey's sparse points and the model, evened as the keyframes are.
         Frames nearest in time to a held-out keyframe are left out (they would carry its light
-        into the training targets). Returns (views, what was read, placed and used), or ([],
+        into the training targets). Where the survey's ``light`` (``passes.light_statistics``)
+        is shared by keyframes next in time (:data:`.passes.SAME_LIGHT`), none are read: the
+        frames between two keyframes saw the light those did. Returns (views, what was read, placed and used), or ([],
         None) where the survey has no look frames or they are off."""
         if self.ccfg.looks == "off":
             return [], None
@@ -391,6 +394,13 @@ class Estimates:
             return [], None
         t0 = time.perf_counter()
         info: dict = {"listed": found.listed, "missing": len(found.missing), "used": 0}
+        shared = (light or {}).get("shared") or {}
+        if shared:
+            lag = min(shared, key=float)
+            if shared[lag] >= passes.SAME_LIGHT:
+                info["reason"] = (f"keyframes next in time ({float(lag):g} s apart) share {100 * shared[lag]:.0f} % of "
+                                  "their light: the frames between them saw the light they did")
+                return [], info
         read = look_reader(data.scene.scene_dir, bool(getattr(data.scene, "undistorted", False)))
         times = read_frame_times(data.scene.scene_dir) or {}
         keys = [data.camera(i, scale) for i in ids]
@@ -399,6 +409,10 @@ class Estimates:
         test = set(data.test_ids)
         kept = [(lk, cam, k) for lk, cam, k in placed if ids[k] not in test]
         info["near_heldout"] = len(placed) - len(kept)
+        most = getattr(self, "max_looks", len(kept))   # as many as fit the caustic work's share of the limit
+        if len(kept) > most:
+            info["thinned"] = len(kept) - most
+            kept = [kept[int(q * len(kept) / most)] for q in range(most)] if most > 0 else []
         out, cams = [], []
         for lk, cam, k in kept:
             check()

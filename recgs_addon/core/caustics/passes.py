@@ -361,8 +361,13 @@ def field_colour(own: torch.Tensor, floor: torch.Tensor, light: torch.Tensor, co
     return (w * own * torch.exp(-light).unsqueeze(-1) + floor) / (w + 1)
 
 
+#: Frames that share this much of the light's variance saw the same light (one pass).
+SAME_LIGHT = 0.5
+
+
 def light_statistics(views: Sequence[PassView], overlap: np.ndarray, sources: Optional[Sequence[int]] = None,
-                     sigma: float = 3.0, pairs: int = 8, shared: float = 0.5, water: Optional[dict] = None) -> dict:
+                     sigma: float = 3.0, pairs: int = 8, shared: float = SAME_LIGHT,
+                     water: Optional[dict] = None) -> dict:
     """How strong the moving light is and how long it stays put at a seabed point, from the
     survey itself (frames ``sources``, default all).
 

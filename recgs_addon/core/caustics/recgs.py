@@ -54,6 +54,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
+from ..io.looks import read_looks
 from ..train.evaluation import PLATEAU
 from ..train.losses import psnr
 from ..train.trainer import Progress, Trainer
@@ -233,6 +234,7 @@ class RecGS(Estimates, Method):
         #: and the frames' size it works at (the training size divided by this)
         self.pass_deadline: Optional[float] = None
         self.pass_scale = 1
+        self._max_looks: Optional[int] = None   # see max_looks
         #: the plain model the recurrences start from (``score``: held-out PSNR against the
         #: captured images; ``params``, ``sh_degree``), and rounds in a row that scored worse
         self.plain: Optional[dict] = None
@@ -597,16 +599,27 @@ class RecGS(Estimates, Method):
             return 0
         return 3 * len(self.data.test_ids) + sum(not self._model_free(i) for i in self.data.train_ids)
 
-    def planned_work(self, scale: Optional[int] = None):
+    def planned_work(self, scale: Optional[int] = None, looks: Optional[int] = None):
         """The pass estimator's expected cost (``cost.py``), where it will run: every training
         and held-out frame at 1 / ``scale`` of the training size (default: the run's
-        ``pass_scale``)."""
+        ``pass_scale``), and ``looks`` of the survey's look frames (default: those the run may
+        use, ``max_looks``)."""
         if self.dropped or not self._passes:
             return None
         from .cost import pass_cost
         scale = self.pass_scale if scale is None else scale
         sizes = [self.data.camera(i, scale) for i in self.data.train_ids + self.data.test_ids]
-        return pass_cost([(c.width, c.height) for c in sizes])
+        looks = self.max_looks if looks is None else looks
+        return pass_cost([(c.width, c.height) for c in sizes], looks=looks, look_size=(sizes[0].width, sizes[0].height))
+
+    @property
+    def max_looks(self) -> int:
+        """The look frames the pass estimator may gather from (the survey's, or as many as fit
+        the caustic work's share of the time and memory, ``fit_work``)."""
+        if self._max_looks is None:
+            found = read_looks(self.data.scene.scene_dir) if self.ccfg.looks != "off" else None
+            self._max_looks = len(found.looks) if found is not None else 0
+        return self._max_looks
 
     def fit_work(self, time_limit_s, room_bytes) -> Optional[str]:
         """The caustic work keeps at most :data:`CAUSTIC_TIME_SHARE` of a time limit and fits the
@@ -617,8 +630,18 @@ class RecGS(Estimates, Method):
         if self.planned_work() is None:
             return None
         why = None
+        listed = self.max_looks
         for scale in PASS_SCALES:
-            work = self.planned_work(scale)
+            work = self.planned_work(scale, looks=0)
+            if listed:   # the look frames that fit beside the keyframes' work
+                one = self.planned_work(scale, looks=1)
+                dt, db = one.seconds - work.seconds, one.bytes - work.bytes
+                fits = listed
+                if time_limit_s is not None and dt > 0:
+                    fits = min(fits, int((CAUSTIC_TIME_SHARE * time_limit_s - work.seconds) / dt))
+                if room_bytes is not None and db > 0:
+                    fits = min(fits, int((room_bytes - work.bytes) / db))
+                work = self.planned_work(scale, looks=max(0, fits))
             if time_limit_s is not None and work.seconds > CAUSTIC_TIME_SHARE * time_limit_s:
                 why = (f"the caustic work would take about {work.seconds:.0f} s here ({work.megapixels:.1f} megapixels "
                        f"of frames), more than {100 * CAUSTIC_TIME_SHARE:.0f} % of the {time_limit_s:.0f}-s limit")
@@ -627,7 +650,7 @@ class RecGS(Estimates, Method):
                        f"({work.megapixels:.1f} megapixels of frames), more than the "
                        f"{max(0, room_bytes) / 2 ** 30:.1f} GB left beside training")
             else:
-                self.pass_scale, self.planned_seconds = scale, work.seconds
+                self.pass_scale, self.planned_seconds, self._max_looks = scale, work.seconds, work.looks
                 self.pass_deadline = None if time_limit_s is None else CAUSTIC_TIME_SHARE * time_limit_s
                 return None
         self._drop(f"{why}, even on frames of 1/{PASS_SCALES[-1]} the size: trained as plain 3DGS (a longer limit, "

@@ -119,15 +119,25 @@ def place_looks(looks: Sequence[Look], keyframes: Sequence[Camera], times: Seque
     share of the way between the keyframes just before and after it in time (the camera moving
     steadily between them, :func:`~..model.cameras.interpolate_pose`), those no more than
     ``max_gap`` s apart. ``keyframes``' cameras and their ``times`` (None: untimed). The
-    intrinsics are those of the keyframe nearest in time. Returns ([(look, camera, index of that
+    intrinsics are those of the keyframe nearest in time (of untimed keyframes: the one nearest
+    in space, for a look with a pose; one without cannot be placed). Returns ([(look, camera, index of that
     keyframe)], counts {"given", "interpolated", "unplaced"})."""
     timed = sorted((float(t), k) for k, t in enumerate(times) if t is not None)
     key_t = np.array([t for t, _ in timed])
     counts = {"given": 0, "interpolated": 0, "unplaced": 0}
     out = []
+    centres = np.array([c.center for c in keyframes]) if len(keyframes) else np.zeros((0, 3))
     for lk in looks:
-        if not len(key_t):
-            counts["unplaced"] += 1
+        if not len(key_t):   # untimed keyframes: a posed look takes the nearest keyframe's camera
+            if lk.posed and len(keyframes):
+                k = int(np.argmin(np.linalg.norm(centres - (-lk.R.T @ lk.t), axis=1)))
+                base = keyframes[k]
+                out.append((lk, Camera(lk.name, base.width, base.height, base.fx, base.fy, base.cx, base.cy,
+                                       np.asarray(lk.R, np.float64), np.asarray(lk.t, np.float64),
+                                       base.camera_id, -1), k))
+                counts["given"] += 1
+            else:
+                counts["unplaced"] += 1
             continue
         pos = int(np.searchsorted(key_t, lk.time))
         near = min((p for p in (pos - 1, pos) if 0 <= p < len(key_t)), key=lambda p: abs(key_t[p] - lk.time))

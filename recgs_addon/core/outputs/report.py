@@ -53,7 +53,9 @@ def _looks_text(lk: Optional[dict]) -> str:
         return f"; look frames: {lk['listed']} listed, none used ({lk['reason']})"
     dropped = [f"{lk[k]} {what}" for k, what in (("missing", "missing from looks/"),
                                                    ("unplaced", "with no keyframes close in time to place them by"),
-                                                   ("near_heldout", "nearest a held-out keyframe"))
+                                                   ("near_heldout", "nearest a held-out keyframe"),
+                                                   ("thinned", "beyond what the time limit fits"),
+                                                   ("misplaced", "not lining up with their keyframe"))
                if lk.get(k)]
     placed = ", ".join(f"{lk[k]} {what}" for k, what in (("given", "posed in looks.json"),
                                                            ("interpolated", "placed between keyframes")) if lk.get(k))

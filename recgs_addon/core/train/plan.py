@@ -163,6 +163,7 @@ class RunPlan:
     work_seconds: Optional[float] = None   # a caustic method's work besides training (its estimate)
     work_bytes: Optional[int] = None       # ... and its peak memory beside the model at its start
     work_megapixels: Optional[float] = None   # ... over this many megapixels of frames
+    work_looks: int = 0                    # ... of which look frames (a video's frames between the keyframes)
     work_given_up: Optional[str] = None    # why that work will not be done (it does not fit)
     work_scale: int = 1                    # ... done on frames of 1 / this of the training size
     fitted: Optional[dict] = None          # the training size lowered to fit the time limit (from what, why)
@@ -180,6 +181,7 @@ class RunPlan:
             return
         if work is not None:
             self.work_seconds, self.work_bytes, self.work_megapixels = work.seconds, work.bytes, work.megapixels
+            self.work_looks = getattr(work, "looks", 0)
             self.work_scale = scale
         if self.work_bytes is not None:
             self.peak_bytes = max(self.peak_bytes, (self.start_bytes or 0) + self.work_bytes)
@@ -212,6 +214,7 @@ class RunPlan:
         elif self.work_seconds is not None:
             out.append(f"caustic work: about {self.work_seconds:.0f} s and {gb(self.work_bytes)} of memory "
                        f"({self.work_megapixels:.1f} megapixels of frames"
+                       + (f", {self.work_looks} of them look frames" if self.work_looks else "")
                        + (f", at 1/{self.work_scale} of the training size to fit the time limit)" if self.work_scale > 1
                           else ")"))
         out.extend(self.notes)
