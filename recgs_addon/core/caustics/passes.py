@@ -106,8 +106,11 @@ def settings_for(light: dict, **fields) -> PassSettings:
 
 
 #: With look frames a frame gathers from at most this many frames (24 without: a video's frames
-#: between the keyframes bring more independent looks than the keyframes' passes hold).
-LOOK_MAX_FRAMES = 48
+#: between the keyframes bring more independent looks than the keyframes' passes hold). On a
+#: 12-frames-a-second survey under fast light the targets were, against the keyframes alone,
+#: -0.2 dB at 24, +0.3 at 36 and +0.5 at 48, the peak memory 1.25, 1.4 and 1.7 times theirs
+#: (benchmarks/RESULTS.md#look-frames): 36 keeps within 1.5 times.
+LOOK_MAX_FRAMES = 36
 
 
 def with_looks(s: PassSettings, times: Sequence[Optional[float]]) -> PassSettings:
@@ -256,7 +259,7 @@ def pass_estimates(views: Sequence[PassView], settings: Optional[PassSettings] =
         stats.append(floor_statistic(samples, valid, s.floor_tol, sigma, s.own_weight))
         counts.append(valid.sum(0))
         passes.append(npass)
-        owns.append(samples[0])
+        owns.append(samples[0].clone())   # a copy: a view would keep every gathered frame alive
     if s.statistic == "field":   # the light, then the colour
         for k, i in enumerate(ids):
             stats[k] = field_colour(owns[k], stats[k], frame_light(owns[k], stats[k], views[i].covered, s),
