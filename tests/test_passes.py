@@ -3,6 +3,7 @@ from above by a lawnmower of frames, under a network of bright lines that moves 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -476,3 +477,19 @@ def test_a_frame_placed_off_lines_up_worse_than_one_placed_right():
 def _frame_view(x: float, y: float, t: float):
     photo, _, depth, vm, K = frame(x, y, t, 0.9)
     return photo, depth, torch.ones(H, W, dtype=torch.bool), vm, K, t
+
+
+def test_with_look_frames_the_cap_drops_frames_of_a_pass_not_passes():
+    keys, _, looks = video(rows=2, per_row=6, between=3)
+    frames = keys + looks
+    n = len(keys)
+    wide = np.zeros((len(frames), len(frames)))
+    wide[:n, :n] = G.overlap_matrix(keys)
+    wide[:n, n:] = G.overlap_block(keys, looks)
+    s = P.with_looks(P.PassSettings(pass_seconds=0.4, light_seconds=0.1), [v.time for v in frames])
+    tight = P.choose_passes(2, frames, wide, replace(s, max_frames=6))
+    loose = P.choose_passes(2, frames, wide, replace(s, max_frames=100))
+    assert sum(map(len, tight)) - 1 <= 6
+    own = len(tight[0]) - 1   # the frame's own pass first, as without the cap
+    assert len(loose) > len(tight) == 1 + 6 - own   # then a pass for each frame the cap leaves
+    assert all(len(g) == 1 for g in tight[1:])

@@ -96,6 +96,7 @@ class PassSettings:
     field_lambda: float = 0.1            # field: TV weight of a frame's light (log units per pixel of edge)
     field_trust: float = 1.0             # field: the frame's own light (log units over the floor) at which its
     field_kappa: float = 0.3             # ... photo and the floor weigh alike; its weight falls as exp(-light / kappa)
+    spread: bool = False                 # where max_frames binds, every pass's best frame first (look frames)
 
 
 def settings_for(light: dict, **fields) -> PassSettings:
@@ -117,11 +118,12 @@ def with_looks(s: PassSettings, times: Sequence[Optional[float]]) -> PassSetting
     """The settings where look frames join the keyframes (frames at ``times``): frames closer
     in time than the light's decorrelation time (not than the keyframes' interval, the finest
     lag the keyframes alone could measure) are one pass, and a frame gathers from up to
-    :data:`LOOK_MAX_FRAMES`."""
+    :data:`LOOK_MAX_FRAMES`, every pass's best frame first (more of them come, each in a pass
+    of its own; the cap then drops frames of a pass, not passes)."""
     t = np.sort(np.asarray([x for x in times if x is not None], float))
     step = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
     return replace(s, pass_seconds=min(s.pass_seconds, max(s.light_seconds, step)),
-                   max_frames=max(s.max_frames, LOOK_MAX_FRAMES))
+                   max_frames=max(s.max_frames, LOOK_MAX_FRAMES), spread=True)
 
 
 def _linear(image: torch.Tensor) -> torch.Tensor:
@@ -154,6 +156,16 @@ def choose_passes(i: int, views: Sequence[PassView], overlap: np.ndarray, s: Pas
     groups.sort(key=lambda g: -max(overlap[i, j] for j in g))
     out = [[i] + sorted(own, key=lambda j: -overlap[i, j])[:max(0, s.per_pass - 1)]]
     used = len(out[0]) - 1
+    if s.spread:   # round by round: each pass's next-best frame, so the cap drops frames, not passes
+        picked: list[list[int]] = [[] for _ in groups]
+        left, depth = s.max_frames - used, 0
+        while left > 0 and any(depth < len(g) for g in groups):
+            for g, p in zip(groups, picked):
+                if depth < len(g) and left > 0:
+                    p.append(g[depth])
+                    left -= 1
+            depth += 1
+        return out + [p for p in picked if p]
     for g in groups:
         g = g[:max(0, s.max_frames - used)]
         if not g:
