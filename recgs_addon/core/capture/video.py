@@ -32,6 +32,7 @@ import numpy as np
 from ..errors import Cancelled, VideoError
 from ..io.atomic import atomic_path, make_folder
 from ..io.images import write_image
+from ..io.looks import LOOKS_DIR, LOOKS_FILE
 from . import frame_choice as fc
 
 #: Suffixes offered by file dialogs (FFmpeg reads many more; the content decides, not the name).
@@ -57,7 +58,6 @@ LOOK_MAX_SIDE = 1280
 #: ... and at most this many of them (a thinned, even spread of the rest): 10 a second of a
 #: 3-minute clip, some 300-500 MB of JPEGs at 1280 px.
 MAX_LOOKS = 1800
-LOOKS_JSON = "looks.json"
 
 
 @dataclass
@@ -357,7 +357,7 @@ def _keep_looks(survey: Path, staging: Path, record: dict, looks: list[dict], o:
     ``looks.json``: those between the first keyframe and the last that are no keyframe, thinned
     evenly to :data:`MAX_LOOKS`; ``record["looks"]`` says how many and how they were taken. An
     import without look frames removes any an earlier import left."""
-    folder, listing = survey / "looks", survey / LOOKS_JSON
+    folder, listing = survey / LOOKS_DIR, survey / LOOKS_FILE
     listing.unlink(missing_ok=True)
     if folder.exists():
         shutil.rmtree(folder)

@@ -379,13 +379,14 @@ class Estimates:
     def _look_views(self, views: list, ids: list[int], scale: int, points: torch.Tensor,
                     check, light: Optional[dict] = None) -> tuple[list, Optional[dict]]:
         """The survey's look frames (core/io/looks.py) as frames to gather from for the keyframes
-        ``views`` (frames ``ids``), at 1 / ``scale`` of the training size: placed (their own pose, or between the keyframes before and after),
-        their depth from the survey's sparse points and the model, evened as the keyframes are.
-        Frames nearest in time to a held-out keyframe are left out (they would carry its light
-        into the training targets). Where the survey's ``light`` (``passes.light_statistics``)
-        is shared by keyframes next in time (:data:`.passes.SAME_LIGHT`), none are read: the
-        frames between two keyframes saw the light those did. Returns (views, what was read, placed and used), or ([],
-        None) where the survey has no look frames or they are off."""
+        ``views`` (frames ``ids``), at 1 / ``scale`` of the training size: placed (their own pose,
+        or between the keyframes before and after), their depth from the survey's sparse points
+        and the model, evened as the keyframes are. Frames nearest in time to a held-out keyframe
+        are left out (they would carry its light into the training targets). Where the survey's
+        ``light`` (``passes.light_statistics``) is shared by keyframes next in time
+        (:data:`.passes.SAME_LIGHT`), none are read: the frames between two keyframes saw the
+        light those did. Returns (views, what was read, placed and used), or ([], None) where the
+        survey has no look frames or they are off."""
         if self.ccfg.looks == "off":
             return [], None
         data, tr = self.data, self.trainer

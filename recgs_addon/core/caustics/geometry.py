@@ -114,23 +114,15 @@ def _sees(points: torch.Tensor, v: PassView, depth: torch.Tensor, depth_tol: flo
 
 def overlap_matrix(views: Sequence[PassView], depth_tol: float = DEPTH_TOL) -> np.ndarray:
     """(N, N) share of frame i's covered grid pixels that frame j sees (diagonal 1)."""
-    n = len(views)
-    out = np.eye(n)
-    depths = [depth_map(v) for v in views]
-    for i, vi in enumerate(views):
-        pts = _grid_points(vi)
-        if len(pts) == 0:
-            continue
-        for j, vj in enumerate(views):
-            if j != i:
-                out[i, j] = float(_sees(pts, vj, depths[j], depth_tol).float().mean())
+    out = overlap_block(views, views, depth_tol)
+    np.fill_diagonal(out, 1.0)
     return out
 
 
 def overlap_block(rows: Sequence[PassView], cols: Sequence[PassView], depth_tol: float = DEPTH_TOL) -> np.ndarray:
     """(len(rows), len(cols)) share of each frame of ``rows``' covered grid pixels that each of
-    ``cols`` sees (as :func:`overlap_matrix`, between two sets of frames: the keyframes and the
-    look frames they gather from)."""
+    ``cols`` sees (:func:`overlap_matrix` of one set, or between two: the keyframes and the look
+    frames they gather from); a frame against itself is left at 0."""
     out = np.zeros((len(rows), len(cols)))
     depths = [depth_map(v) for v in cols]
     for i, vi in enumerate(rows):
@@ -138,7 +130,8 @@ def overlap_block(rows: Sequence[PassView], cols: Sequence[PassView], depth_tol:
         if len(pts) == 0:
             continue
         for j, vj in enumerate(cols):
-            out[i, j] = float(_sees(pts, vj, depths[j], depth_tol).float().mean())
+            if vj is not vi:
+                out[i, j] = float(_sees(pts, vj, depths[j], depth_tol).float().mean())
     return out
 
 

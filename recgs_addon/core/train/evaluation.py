@@ -87,11 +87,7 @@ class EvaluationMixin:
         true colour."""
         t = time.perf_counter()
         cam = self.data.camera(index, level)
-        viewmat, K = view_tensors(cam, self.device)
-        p = self.params
-        out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
-                     viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
-                     background=self._background(), compiled=self.compiler.compiled())
+        out = self.render_camera(cam)
         if seen and self.forms_image:
             out = out._replace(rgb=self.as_seen(out, cam))
         dt = time.perf_counter() - t
@@ -102,8 +98,8 @@ class EvaluationMixin:
     @torch.no_grad()
     def render_camera(self, cam):
         """The :class:`~..render.rasterizer.RenderOutput` of any camera ``cam`` (a
-        :class:`~..model.cameras.Camera` at its own size: a look frame), its ``rgb`` in true
-        colour (no water, no lamp: what is wanted of such a render is its depth)."""
+        :class:`~..model.cameras.Camera` at its own size: a training view, a look frame), its
+        ``rgb`` in true colour (no water, no lamp; :meth:`render_output` adds them)."""
         viewmat, K = view_tensors(cam, self.device)
         p = self.params
         return render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], self._sh(),
