@@ -610,6 +610,31 @@ def test_keep_best_ends_with_the_best_held_out_model(small_scene):
     assert last.best is None and last.best_step is None and last.step == 240
 
 
+def test_keep_best_under_moving_light_chooses_only_from_the_later_half(small_scene):
+    """Where the photos carry moving light (or the run models the water) an early, blurred model
+    that scores best on the held-out photos is not kept: only models trained half the run or
+    more are candidates; without either, any evaluation is."""
+    from recgs_addon.core.train.evaluation import BEST_FROM_SHARE
+
+    tr = make_trainer(small_scene, tiny_cfg(iterations=240, eval_every=20, keep_best=True))
+    assert tr.best_from_share() == 0.0
+    tr.light = {"caustics": True}
+    assert tr.best_from_share() == BEST_FROM_SHARE
+    tr.train_until(until=lambda: tr.step >= 60)
+    tr.best = None
+    tr._consider_best(99.0)            # a quarter of the run: not a candidate
+    assert tr.best is None
+    tr.train_until(until=lambda: tr.step >= 120)
+    tr._consider_best(40.0)
+    assert tr.best["step"] == 120
+    tr.run()
+    assert tr.best_step is None or tr.best_step >= 120
+    # a time limit counts the share in time
+    tr.cfg.max_minutes = 1.0
+    tr.elapsed = 20.0
+    assert tr.run_share() == 20.0 / 60.0
+
+
 def test_blending_weights_add_up_to_the_alpha_of_the_view(small_scene):
     from recgs_addon.core.outputs.diagnostics import blending_weights, support_summary, view_support
     from recgs_addon.core.render.rasterizer import render
