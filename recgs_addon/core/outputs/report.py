@@ -261,6 +261,21 @@ def _light_section(light: Optional[dict], mode: Optional[str], lamp: dict) -> li
             + (f" What decided: {light['decided_by']}." if light.get("decided_by") and light["caustics"] else "")]
 
 
+def _water_prior(medium: dict) -> list[str]:
+    """Which channels' attenuation came from the photos and which from natural water's locus."""
+    prior = medium.get("prior") or {}
+    if "source" not in prior:
+        return []
+    names = ("red", "green", "blue")
+    filled = [f"{n} {v:.3f} +- {e:.3f} ({src})" for n, v, e, src in
+              zip(names, prior["values"], prior["values_spread"], prior["source"]) if src != "photos"]
+    text = (f"The attenuation the survey pins is most like Jerlov's water type {prior['name']} "
+            f"({prior['misfit']:.1f} standard deviations from it, the natural waters' locus with the fit's error bars)")
+    text += (f"; where the survey leaves a colour loose or free, training starts it from there: {', '.join(filled)}."
+             if filled else ".")
+    return ["", text]
+
+
 def _water_section(medium: dict) -> list[str]:
     """The fitted water: coefficients per channel (and what the sparse points gave before training)."""
     coef = medium.get("coefficients")
@@ -279,7 +294,7 @@ def _water_section(medium: dict) -> list[str]:
     if pre:
         lines.append(f"| from the sparse points, before training | {rgb(pre['attenuation'])} | "
                      f"{rgb(pre['backscatter'])} | {rgb(pre['veil'])} |")
-    lines += _water_pinning(medium) + _water_under_light(medium) + _water_kept(medium)
+    lines += _water_pinning(medium) + _water_prior(medium) + _water_under_light(medium) + _water_kept(medium)
     if medium.get("cues"):
         lines += ["", "Where the fit disagrees with what natural waters and seabeds look like (said, not overruled):", ""]
         lines += [f"- {c[0].upper() + c[1:]}." for c in medium["cues"]]

@@ -37,7 +37,7 @@ import torch
 
 from . import numba_water
 from ..model.colour import linear_to_srgb, srgb_to_linear
-from ..model import medium_fit
+from ..model import jerlov, medium_fit
 from ..model.medium import Medium, out_of_water, ray_lengths
 
 #: Median over sparse points of (farthest / nearest training view's range) below which the
@@ -73,6 +73,10 @@ MAX_OVER_WHITE = 0.1
 #: thousand points' views average out; measured on a level survey under light networks: red
 #: attenuation 6 % off from 60,000, 9 % from 12,000).
 LIGHT_OBSERVATIONS = 60_000
+#: The pinned channels' misfit to the natural waters' locus (root mean square, in standard
+#: deviations: the locus's width with the fit's error bars) beyond which the report says the
+#: water is unlike the Jerlov types.
+LOCUS_MISFIT = 2.0
 #: Refits of the points' water on points drawn again (core/model/medium_fit.py).
 BOOT_ROUNDS = 8
 #: The colour channels, as the reasons and cues name them.
@@ -332,6 +336,7 @@ class MediumMixin:
         if c.medium == "auto" and not shown:
             self.medium_info["reason"] = why
             return
+        self._natural_prior(fit, pins)
         self.medium = fit["medium"]
         self.medium_optimizer = torch.optim.Adam([self.medium.raw], lr=LR_MEDIUM, eps=1e-15)
         self._prefit = {"points": obs["points"], "true": fit["true"]}
@@ -350,6 +355,34 @@ class MediumMixin:
             f"{why}; the survey pins the attenuation of {', '.join(names) if names else 'no channel'} within "
             f"{100 * PINNED:.0f} %"))
         self._hold_points_water()
+
+    def _natural_prior(self, fit: dict, pins: dict) -> None:
+        """Where the survey leaves a channel's attenuation loose or free, start it from what
+        natural water allows (core/model/jerlov.py: the Jerlov locus placed by the channels the
+        survey pins): ``medium_info["prior"]`` says the type, each channel's source and how far
+        the pinned channels lie from the locus (a cue where far: the photos' water is unlike the
+        types, or the fit is off)."""
+        att, spread = fit["fit"]["attenuation"], (fit.get("spread") or {}).get("attenuation")
+        if spread is None:
+            return
+        got = jerlov.fill(att, spread, [p == "pinned" for p in pins["attenuation"]])
+        if got is None:
+            self.medium_info["prior"] = {"reason": "fewer than two channels pinned: the locus is not placed"}
+            return
+        self.medium_info["prior"] = {k: got[k] for k in ("name", "type", "misfit", "source", "values",
+                                                          "values_spread", "attenuation")}
+        if got["misfit"] > LOCUS_MISFIT:
+            self.medium_info.setdefault("cues", []).append(
+                f"the attenuation the survey pins lies {got['misfit']:.1f} standard deviations from the nearest "
+                f"natural water's (Jerlov's {got['name']}): an unusual water, or a fit the photos mislead")
+        if all(src == "photos" for src in got["source"]):
+            return
+        vals = fit["medium"].values()
+        vals["attenuation"] = np.clip(got["values"], 1e-4, None).tolist()
+        device = fit["medium"].raw.device
+        medium = Medium.from_values(vals)
+        medium.raw = torch.nn.Parameter(medium.raw.detach().to(device))
+        fit["medium"] = medium
 
     def _unlit(self, obs: dict) -> None:
         """The observations' colours with the lamp's light taken out (where the run models a
