@@ -105,6 +105,18 @@ SURVEYS.update({
     "level-reef-clear-waves": REEF + ["--water", "clear", "--seed", "66", "--caustic-pattern", "waves",
                                       "--caustic-strength", "0.8"],
 })
+# The reef flown lower and looking further ahead (2.6 m up, pitched 38 degrees: ranges about
+# 2.7-5.8 m) behind a green coastal water whose veil is bright and builds up slowly (attenuation
+# 0.50 / 0.12 / 0.18 per m, backscatter 0.40 / 0.18 / 0.22, veil 0.03 / 0.20 / 0.22): the veil's
+# growth with range and the attenuation trade against each other over the ranges one altitude
+# gives. Without caustics and under light networks.
+GREEN = DIVE + ["--altitude", "2.6", "--pitch", "38", "--save-depth", "--rocks", "60", "--water", "coastal",
+                "--water-attenuation", "0.50,0.12,0.18", "--water-backscatter", "0.40,0.18,0.22",
+                "--water-colour", "0.03,0.20,0.22"]
+SURVEYS.update({
+    "level-reef-green": GREEN + ["--seed", "67", "--caustic-strength", "0"],
+    "level-reef-green-networks": GREEN + ["--seed", "68", "--caustic-pattern", "voronoi", "--caustic-strength", "0.9"],
+})
 # Lawnmower rows that cross each seabed point only two or three times, as most divers and
 # robots shoot: 64 frames in six rows with 65 % side overlap (each point in about six frames of
 # each of two or three rows), frames a third of a second apart, sharp light networks drifting

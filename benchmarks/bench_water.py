@@ -77,10 +77,19 @@ RUNS = [
     ("level-reef-clear-waves", "recgs+water", "recgs", ["--medium", "auto"]),
     ("level-reef-clear-waves", "oracle", "oracle", ["--medium", "off"]),
     ("level-reef-clear-waves", "plain", "3dgs", ["--medium", "off"]),
+    # the reef lower and looking further ahead behind a bright, slowly building veil
+    ("level-reef-green", "water", "3dgs", ["--medium", "auto"]),
+    ("level-reef-green", "oracle", "oracle", ["--medium", "off"]),
+    ("level-reef-green", "plain", "3dgs", ["--medium", "off"]),
+    ("level-reef-green-networks", "recgs+water", "recgs", ["--medium", "auto"]),
+    ("level-reef-green-networks", "water", "3dgs", ["--medium", "auto"]),
+    ("level-reef-green-networks", "oracle", "oracle", ["--medium", "off"]),
+    ("level-reef-green-networks", "plain", "3dgs", ["--medium", "off"]),
     ("level-water", "water", "3dgs", ["--medium", "auto"]),
     ("level-water", "oracle", "oracle", ["--medium", "off"]),
 ]
 DECISION_SURVEYS = ["dive-water", "dive-water-networks", "dive-water-clear", "level-water", "level-reef-water",
+                    "level-reef-green", "level-reef-green-networks",
                     "level-reef-clear", "level-reef-networks", "level-reef-clear-waves", "dive-none", "dive-networks", "sample-none", "networks",
                     "dive-lamp"]
 
