@@ -635,6 +635,22 @@ def test_keep_best_under_moving_light_chooses_only_from_the_later_half(small_sce
     assert tr.run_share() == 20.0 / 60.0
 
 
+def test_density_control_ends_before_the_time_limit_so_the_last_gaussians_settle(small_scene):
+    tr = make_trainer(small_scene, tiny_cfg(iterations=240, max_minutes=1.0, densify_until_share=0.8))
+    tr.step = tr.cfg.densify_from + 1
+    tr.elapsed = 0.5 * 60.0
+    assert tr.densifying()
+    tr.elapsed = 0.81 * 60.0
+    assert not tr.densifying() and tr.growth_over()
+    tr.cfg.densify_until_share = 1.0          # density control to the end
+    assert tr.densifying()
+    tr.cfg.max_minutes = None                 # without a time limit the steps decide
+    tr.cfg.densify_until_share = 0.8
+    assert tr.densifying()
+    tr.step = tr.cfg.densify_until
+    assert not tr.densifying()
+
+
 def test_blending_weights_add_up_to_the_alpha_of_the_view(small_scene):
     from recgs_addon.core.outputs.diagnostics import blending_weights, support_summary, view_support
     from recgs_addon.core.render.rasterizer import render

@@ -57,6 +57,9 @@ class TrainConfig:
     densify_from: int = 500
     densify_until: int = 15_000
     densify_every: int = 100
+    #: with a time limit, no density control after this share of it, so the run ends on a model
+    #: whose last Gaussians have settled (1 = density control to the end)
+    densify_until_share: float = 1.0
     opacity_reset_every: int = 3000
     #: which Gaussians are added, moved and removed, with its own settings (strategies.py):
     #: clone/split (INRIA, the default) or 3DGS-MCMC
@@ -142,7 +145,7 @@ def preset(name: str, **overrides) -> TrainConfig:
         cfg = TrainConfig(preset="default", iterations=30_000, densify_from=200, densify_until=4000,
                           densify_every=100, opacity_reset_every=0, pyramid=((300, 2),),
                           eval_every=250, plateau_patience=4, growth_patience=2, sh_policy="probation",
-                          growth_rate=0.25, keep_best=True)
+                          growth_rate=0.25, keep_best=True, densify_until_share=0.8)
     else:
         raise RecGSError(f"unknown preset {name!r} (choose default or vanilla)")
     return replace(cfg, density=dens, **{k: v for k, v in overrides.items() if v is not None})

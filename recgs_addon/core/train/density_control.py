@@ -15,7 +15,13 @@ class DensityMixin:
     """The trainer's density control (see the module's docstring)."""
 
     def densifying(self) -> bool:
-        return self.step < self.cfg.densify_until and not self.growth_frozen
+        """Density control runs: before ``densify_until`` steps, growth not frozen, and with a time
+        limit before ``densify_until_share`` of it (a run that ends right after a densification
+        ends on Gaussians that have not settled)."""
+        c = self.cfg
+        if self.step >= c.densify_until or self.growth_frozen:
+            return False
+        return not (self.time_limit_s and c.densify_until_share < 1.0 and self.run_share() >= c.densify_until_share)
 
     def _uses_gradient_stats(self) -> bool:
         """Density control reads the accumulated screen gradients (clone/split, or MCMC
