@@ -112,7 +112,10 @@ def _sample_colours(data, obs: dict) -> None:
     same patch of seabed in every view, a box whose side in pixels shrinks with the range
     (about 3 pixels at the far views). A fixed box would average more seabed the farther the
     view, so contrast would fall with range as if the water took it (measured: attenuation
-    fitted 10-25 % high with a 3x3 box, within 1 % with the patch)."""
+    fitted 10-25 % high with a 3x3 box, within 1 % with the patch). The mean is taken in linear
+    light, where the water and the light add and multiply: a mean of sRGB values is darker than
+    the patch's light by more where the patch holds more contrast (texture resolved by a near
+    view, a caustic network), which biases the fall-off with range."""
     views = obs["views"]
     if not views:
         obs["colour"] = np.zeros((0, 3), np.float32)
@@ -120,7 +123,7 @@ def _sample_colours(data, obs: dict) -> None:
     patch = 1.5 * float(np.median([np.percentile(r / cam.fx, 95) for _, cam, _, _, _, r in views]))
     colour = []
     for i, cam, _, u, v, r in views:
-        img = data.view(i, 1)[1].cpu().numpy().astype(np.float64)
+        img = srgb_to_linear(data.view(i, 1)[1].cpu().double()).numpy()
         sat = np.zeros((cam.height + 1, cam.width + 1, 3))
         sat[1:, 1:] = img.cumsum(0).cumsum(1)          # summed-area table: any box's mean in O(1)
         half = np.maximum(1.0, patch * cam.fx / r)
@@ -130,7 +133,8 @@ def _sample_colours(data, obs: dict) -> None:
         y1 = np.clip(np.floor(v + half + 0.5), y0 + 1, cam.height).astype(np.int64)
         box = sat[y1, x1] - sat[y0, x1] - sat[y1, x0] + sat[y0, x0]
         colour.append(box / ((x1 - x0) * (y1 - y0))[:, None])
-    obs["colour"] = np.concatenate(colour).astype(np.float32)
+    lin = torch.from_numpy(np.concatenate(colour)).clamp(0.0, 1.0)
+    obs["colour"] = linear_to_srgb(lin).numpy().astype(np.float32)
 
 
 def range_profile(obs: dict) -> dict:
