@@ -238,3 +238,66 @@ def test_blocks_without_ray_say_how_to_get_it(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert "not installed" in err and "pip install 'ray" in err and "setup.sh --ray" in err
     assert not (tmp_path / "out").exists()   # nothing written
+
+
+def test_a_split_says_what_it_costs_in_duplicated_photos_and_a_wasteful_one_is_refused():
+    from recgs_addon.core.blocks.split import MAX_DUPLICATION, check_split, fewest_duplicating
+
+    strip = strip_survey()                                   # a strip 4 footprints long: blocks pay
+    plan = plan_blocks(strip, 2, [])
+    counted = sum(len(b.train) for b in plan.blocks) / len({n for b in plan.blocks for n in b.train})
+    assert plan.duplication == pytest.approx(counted) and 1.0 <= plan.duplication < 1.5
+    assert any("trains in" in line for line in plan.lines())
+    check_split(strip, plan, [], cluster=False)              # accepted
+    small = strip_survey(length=2.0, width=2.0)              # a seabed one or two footprints wide
+    four = plan_blocks(small, 4, [])
+    assert four.duplication > MAX_DUPLICATION and "small for this many blocks" in four.cost_line()
+    with pytest.raises(RecGSError) as err:
+        check_split(small, four, [], cluster=False)
+    fits = fewest_duplicating(small, [], 3)
+    assert 1 <= fits < 4 and (fits == 1 or plan_blocks(small, fits, []).duplication <= MAX_DUPLICATION)
+    assert "4 blocks would train each photo in" in str(err.value)
+    assert (f"at most {fits} blocks" if fits > 1 else "one job") in str(err.value)
+    check_split(small, four, [], cluster=True)               # more machines: said, not refused
+
+
+def test_blocks_auto_is_one_job_where_it_fits_and_the_fewest_blocks_that_fit_otherwise():
+    from recgs_addon.core.blocks.split import auto_blocks
+
+    strip = strip_survey()
+    n, why = auto_blocks(strip, [], one_job_bytes=2 * 2 ** 30, available=8 * 2 ** 30)
+    assert n == 1 and "one job" in why
+    assert auto_blocks(strip, [], 2 * 2 ** 30, None)[0] == 1   # memory unknown: one job
+    n, why = auto_blocks(strip, [], one_job_bytes=10 * 2 ** 30, available=4 * 2 ** 30)
+    plan = plan_blocks(strip, n, [])
+    assert n >= 3 and 10 * plan.duplication / n <= 4        # each block's share fits ...
+    smaller = plan_blocks(strip, n - 1, [])
+    assert 10 * smaller.duplication / (n - 1) > 4             # ... and one block fewer would not
+    assert f"{n} blocks" in why
+    with pytest.raises(RecGSError, match="no split"):
+        auto_blocks(strip, [], one_job_bytes=10 ** 15, available=2 ** 30, most=6)
+
+
+def test_the_blocks_option_takes_a_count_or_auto():
+    import argparse
+
+    from recgs_addon.core.options.train import AUTO_BLOCKS, blocks_count
+
+    assert blocks_count("auto") == AUTO_BLOCKS and blocks_count("AUTO") == AUTO_BLOCKS
+    assert blocks_count("4") == 4 and blocks_count(0) == 0
+    for bad in ("-2", "four"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            blocks_count(bad)
+
+
+def test_train_with_blocks_auto_trains_one_job_where_it_fits(tmp_path):
+    survey = tmp_path / "survey"
+    write_rendered_scene(survey, n_views=8, width=40, height=30, n_gauss=160, downward=True, heights=[1.2] * 8)
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "recgs_addon", "train", str(survey), "--out", str(out), "--blocks",
+                        "auto", "--iterations", "5", "--eager", "--medium", "off", "--lamp", "off"],
+                       cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "--blocks auto: one job" in r.stderr
+    assert (out / "metrics.json").is_file() and not (out / "blocks").exists()

@@ -22,9 +22,9 @@ from dataclasses import asdict
 from pathlib import Path
 
 from ..core.errors import RecGSError
-from ..core.options.train import TRAIN_OPTIONS
+from ..core.options.train import AUTO_BLOCKS, TRAIN_OPTIONS
 from .events import StopSignals, _finite_tree, _json_default, emit, fail
-from .train import add_train_arguments, run_train
+from .train import _parse_budget, add_train_arguments, run_train
 
 #: Options a block's ``train`` is not given as the job was (each block has its own).
 _OWN = {"scene_dir", "out", "blocks", "cluster", "block", "block_threads", "resume", "init_ply", "max_minutes"}
@@ -35,10 +35,39 @@ POLL_S = 0.5
 
 
 def train_command(args) -> int:
-    """The ``train`` command: one job, or with ``--blocks N`` (N >= 2) the survey in blocks."""
+    """The ``train`` command: one job, or with ``--blocks N`` (N >= 2) the survey in blocks;
+    ``--blocks auto`` chooses (:func:`auto_count`)."""
+    if args.block is None and args.blocks == AUTO_BLOCKS:
+        if args.resume and (Path(args.out) / "blocks" / "plan.json").is_file():
+            args.blocks = 2   # the split already made
+        else:
+            try:
+                n, why = auto_count(args)
+            except RecGSError as exc:
+                return fail(str(exc))
+            print(f"--blocks auto: {why}", file=sys.stderr, flush=True)
+            args.blocks = n if n > 1 else 0
     if args.blocks and args.blocks > 1 and args.block is None:
         return run_blocks(args)
     return run_train(args)
+
+
+def auto_count(args) -> tuple[int, str]:
+    """``--blocks auto``: one job where its planned memory fits on this machine, else the
+    fewest blocks whose share does (core/blocks/split.py ``auto_blocks``)."""
+    from ..core.blocks.split import auto_blocks
+    from ..core.train.config import preset
+    from ..core.train.plan import USABLE_SHARE, available_bytes, survey_bytes
+    from ..core.train.trainer import auto_budget
+
+    data = _survey_data(args)
+    cfg = preset(args.preset)
+    budget = _parse_budget(args.budget)
+    if budget is None:
+        budget = auto_budget(data, cfg)
+    avail = available_bytes(cfg.device)
+    return auto_blocks(data.scene, [data.scene.cameras[i].name for i in data.test_ids],
+                       survey_bytes(data, cfg.sh_degree, budget), None if avail is None else int(USABLE_SHARE * avail))
 
 
 def block_argv(args) -> list[str]:
@@ -72,7 +101,7 @@ def run_blocks(args) -> int:
 
         return fail(f"--blocks runs the blocks on Ray, which is not installed: pip install '{RAY_REQUIREMENT}' into "
                     "the training Python (scripts/setup.sh --ray does)")
-    from ..core.blocks.split import BlockPlan, plan_blocks
+    from ..core.blocks.split import BlockPlan, check_split, plan_blocks
     from ..core.io.ply import read_gaussian_ply, write_gaussian_ply
 
     out: Path = args.out
@@ -87,7 +116,9 @@ def run_blocks(args) -> int:
             plan = BlockPlan.load(plan_path)
         else:
             data = _survey_data(args)   # the cameras, and the survey's held-out photos
-            plan = plan_blocks(data.scene, args.blocks, [data.scene.cameras[i].name for i in data.test_ids])
+            test = [data.scene.cameras[i].name for i in data.test_ids]
+            plan = plan_blocks(data.scene, args.blocks, test)
+            check_split(data.scene, plan, test, cluster=bool(args.cluster or os.environ.get("RAY_ADDRESS")))
             bdir.mkdir(parents=True, exist_ok=True)
             plan.save(plan_path)
             init = read_gaussian_ply(args.init_ply) if args.init_ply else None

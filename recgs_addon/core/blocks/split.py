@@ -17,6 +17,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -36,6 +37,13 @@ MIN_BLOCK_VIEWS = 3
 SEAM_SHARE = 0.9
 #: Sparse points used for visibility at most (a uniform sample beyond).
 VISIBILITY_POINTS = 20_000
+#: Blocks on which a training photo trains on average beyond which a split is refused on one
+#: machine: the blocks share its cores, so at equal compute each photo gets this many times
+#: fewer steps than in one job (a 64-photo survey a few footprints wide in 4 blocks: 3.3, and
+#: 37.71 dB against one job's 39.77).
+MAX_DUPLICATION = 2.0
+#: ... and beyond which the plan warns.
+WARN_DUPLICATION = 1.5
 
 
 @dataclass
@@ -93,9 +101,26 @@ class BlockPlan:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise RecGSError(f"{path}: not a block plan this version reads ({exc})") from exc
 
+    @property
+    def duplication(self) -> float:
+        """Blocks a training photo trains in, on average (1: every photo in one block)."""
+        unique = {name for b in self.blocks for name in b.train}
+        return sum(len(b.train) for b in self.blocks) / max(len(unique), 1)
+
+    def cost_line(self) -> str:
+        """What the blocks cost in duplicated photos."""
+        d = self.duplication
+        line = (f"each training photo trains in {d:.2f} blocks on average: on the same cores each photo gets "
+                f"{1 / d:.2f} of one job's steps")
+        if d > WARN_DUPLICATION:
+            line += ("; the survey is small for this many blocks (they pay where one job does not fit in memory, "
+                     "or on more machines)")
+        return line
+
     def lines(self) -> list[str]:
         lines = [f"blocks: {len(self.blocks)} ({self.grid[0]} x {self.grid[1]} over the seabed), margin "
-                 f"{self.margin:.3g}; {len(self.seam_views)} of {len(self.test)} held-out photos cross a seam"]
+                 f"{self.margin:.3g}; {len(self.seam_views)} of {len(self.test)} held-out photos cross a seam",
+                 self.cost_line()]
         for b in self.blocks:
             lines.append(f"  {b.name}: {len(b.train)} photos, {len(b.test)} held out, {b.points} sparse points")
         return lines
@@ -207,3 +232,52 @@ def plan_blocks(scene: Scene, n: int, test: list[str], min_share: float = MIN_SH
                 seam_views.append(name)
     owner = {names[i]: blocks[owner_of[i]].name for i in range(len(names))}
     return BlockPlan(blocks, (cols, rows), grow, sorted(held & set(names)), sorted(seam_views), owner)
+
+
+def fewest_duplicating(scene: Scene, test: list[str], n: int, max_duplication: float = MAX_DUPLICATION) -> int:
+    """The most blocks, up to ``n``, whose split trains each photo in at most ``max_duplication``
+    blocks on average (1: none does, one job)."""
+    for k in range(n, 1, -1):
+        try:
+            if plan_blocks(scene, k, test).duplication <= max_duplication:
+                return k
+        except RecGSError:
+            continue
+    return 1
+
+
+def check_split(scene: Scene, plan: BlockPlan, test: list[str], cluster: bool) -> None:
+    """Refuse (RecGSError) a split on one machine that trains each photo in more than
+    :data:`MAX_DUPLICATION` blocks on average, with the count that would not; on a cluster the
+    blocks bring more machines, and the plan only says what they cost."""
+    if cluster or plan.duplication <= MAX_DUPLICATION:
+        return
+    n = len(plan.blocks)
+    fits = fewest_duplicating(scene, test, n - 1)
+    advice = "train it as one job (--blocks 0)" if fits <= 1 else f"split it into at most {fits} blocks"
+    raise RecGSError(f"{scene.scene_dir}: {n} blocks would train each photo in {plan.duplication:.1f} of them on "
+                     f"average (the survey is a few photos' footprints wide): on this machine's cores each photo "
+                     f"would get {1 / plan.duplication:.2f} of one job's steps; {advice}, or --blocks auto")
+
+
+def auto_blocks(scene: Scene, test: list[str], one_job_bytes: int, available: Optional[int],
+                most: int = 64) -> tuple[int, str]:
+    """``--blocks auto``: how many blocks, and why. One job where its planned memory
+    (``one_job_bytes``) fits in ``available`` (on one machine the blocks share its cores, so they
+    only duplicate photos); otherwise the fewest blocks whose share of the survey (its photos
+    times their duplication) fits."""
+    if available is None or one_job_bytes <= available:
+        gb = lambda b: f"{b / 2 ** 30:.1f} GB"  # noqa: E731
+        room = "" if available is None else f" of {gb(available)}"
+        return 1, f"one job: it needs about {gb(one_job_bytes)}{room}, and blocks would only duplicate photos"
+    for k in range(2, most + 1):
+        try:
+            plan = plan_blocks(scene, k, test)
+        except RecGSError:
+            break
+        if one_job_bytes * plan.duplication / k <= available:
+            return k, (f"{k} blocks: one job would need about {one_job_bytes / 2 ** 30:.1f} GB of "
+                       f"{available / 2 ** 30:.1f} GB; {plan.cost_line()}")
+    raise RecGSError(f"{scene.scene_dir}: no split into up to {most} blocks fits in memory "
+                     f"({one_job_bytes / 2 ** 30:.1f} GB for one job, {available / 2 ** 30:.1f} GB available); "
+                     "train at a lower resolution (--max-side)")

@@ -2,6 +2,7 @@
 batch mode): :data:`TRAIN_OPTIONS`."""
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from ..caustics.config import ESTIMATORS, FIND_CAUSTICS, LOOKS, MODE_INFO, PASS_STATISTICS, CausticConfig
@@ -12,6 +13,21 @@ from .table import Option, OptionTable, Setting
 
 _CAUSTICS = "caustic removal"
 _BLOCKS = "training in blocks"
+#: ``--blocks auto``, as the parsed value.
+AUTO_BLOCKS = -1
+
+
+def blocks_count(text) -> int:
+    """``--blocks``: a count (0 or 1: one job) or ``auto`` (:data:`AUTO_BLOCKS`)."""
+    if str(text).strip().lower() == "auto":
+        return AUTO_BLOCKS
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"takes a number or 'auto', got {text!r}") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"takes a number of 0 or more or 'auto', got {n}")
+    return n
 
 #: What each water setting does (labels and descriptions: the sidebar's Water).
 _MEDIUM = {
@@ -99,9 +115,11 @@ TRAIN_OPTIONS = OptionTable([
            default=TrainConfig.holdout_every, setting=Setting("Hold Out Every", minimum=0)),
     Option("--init-ply", "Start from these Gaussians", type=Path),
     Option("--blocks", "Split the survey into this many blocks over the seabed, train them in parallel on Ray "
-                       "(each on the photos that see it, with a margin) and merge them into one scene; 0 = one job. "
-                       "For surveys larger than one machine's memory or time", type=int, default=0, group=_BLOCKS,
-           setting=Setting("Train in Blocks", minimum=0, soft_max=64)),
+                       "(each on the photos that see it, with a margin) and merge them into one scene; 0 = one job; "
+                       "'auto': one job where it fits in memory, else the fewest blocks that do. For surveys larger "
+                       "than one machine's memory or time; on one machine a split that trains each photo in more "
+                       "than two blocks on average is refused (the blocks share its cores)", type=blocks_count,
+           default=0, group=_BLOCKS, setting=Setting("Train in Blocks", minimum=0, soft_max=64, kind="int")),
     Option("--cluster", "Ray cluster to run the blocks on (an address such as ray://host:10001 or auto; default "
                         "RAY_ADDRESS, else a local Ray on this machine). Its workers must reach the output folder",
            group=_BLOCKS, setting=Setting("Cluster Address", default="",

@@ -229,6 +229,17 @@ def estimate_peak(now: int, pixels: int, method_bytes: int, sh_degree: int, gaus
     return int(now + PIXEL_BYTES * pixels + method_bytes + model - held)
 
 
+def survey_bytes(data, sh_degree: int, budget: Optional[int]) -> int:
+    """What one job on ``data`` would hold at its largest, before its photos are read: the
+    photos kept as 8-bit at the training size (3 bytes a pixel, a quarter more for the coarse
+    level), one step's buffers at the largest view and the model at ``budget`` Gaussians (what
+    ``--blocks auto`` weighs against the memory there is)."""
+    ids = data.train_ids + data.test_ids
+    pixels = sum(data.sizes[i][0] * data.sizes[i][1] for i in ids)
+    largest = max((data.sizes[i][0] * data.sizes[i][1] for i in ids), default=0)
+    return int(3 * 1.25 * pixels + PIXEL_BYTES * largest + gaussian_bytes(sh_degree) * (budget or 0))
+
+
 def plan_run(trainer, method_bytes: int = 0, limit_bytes: Optional[int] = None, warmup_steps: int = 3,
              caustics: bool = False, work=None) -> RunPlan:
     """Measure and estimate what ``trainer``'s run needs (its images loaded), cap an automatic
