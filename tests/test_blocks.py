@@ -301,3 +301,16 @@ def test_train_with_blocks_auto_trains_one_job_where_it_fits(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert "--blocks auto: one job" in r.stderr
     assert (out / "metrics.json").is_file() and not (out / "blocks").exists()
+
+
+def test_each_block_gets_its_round_of_the_time_left_after_the_split_and_before_the_merge():
+    from recgs_addon.commands.blocks import MERGE_SHARE, block_minutes
+
+    # 4 blocks on 2 workers: two rounds of what is left
+    assert block_minutes(10.0, 30.0, 4, 2) == pytest.approx((600 * (1 - MERGE_SHARE) - 30) / 2 / 60)
+    # 3 blocks on 2 workers are two rounds too, not one and a half
+    assert block_minutes(10.0, 0.0, 3, 2) == pytest.approx(600 * (1 - MERGE_SHARE) / 2 / 60)
+    for n, w in ((1, 1), (5, 2), (8, 3), (6, 6)):
+        rounds = -(-n // w)
+        assert rounds * block_minutes(5.0, 12.0, n, w) * 60 + 12.0 <= 300 * (1 - MERGE_SHARE) + 1e-6
+    assert block_minutes(1.0, 500.0, 2, 2) > 0          # spent more than the limit: a token time, not 0

@@ -150,8 +150,8 @@ def run_blocks(args) -> int:
         threads = _threads(args, len(plan.blocks), cores)
         workers = max(1, min(len(plan.blocks), cores // threads))
         minutes = None
-        if args.max_minutes is not None:   # the job's time, shared by the blocks that run at once
-            minutes = args.max_minutes * workers / len(plan.blocks)
+        if args.max_minutes is not None:
+            minutes = block_minutes(args.max_minutes, time.perf_counter() - t0, len(plan.blocks), workers)
         lines = plan.lines() + [f"blocks run on Ray ({address or 'local'}): {workers} at a time, {threads} "
                                 f"thread(s) each" + (f", {minutes:.2f} min each" if minutes else "")]
         emit("plan", lines=lines, blocks=[b.name for b in plan.blocks], workers=workers, threads=threads)
@@ -184,6 +184,20 @@ def run_blocks(args) -> int:
         return _finish(args, plan, bdir, out, results, stopped, t0)
     except RecGSError as exc:
         return fail(str(exc), detail="the blocks' checkpoints are kept")
+
+
+#: Share of a time limit kept for merging the blocks, scoring the scene and writing its outputs.
+MERGE_SHARE = 0.05
+
+
+def block_minutes(max_minutes: float, spent_s: float, n_blocks: int, workers: int) -> float:
+    """Each block's time limit: what the job has left (its limit less the ``spent_s`` seconds
+    the split and Ray's start took, and :data:`MERGE_SHARE` for the merge), over the rounds of
+    ``workers`` blocks at once that ``n_blocks`` take (a last round with fewer blocks counts
+    whole: 3 blocks on 2 workers are two rounds)."""
+    rounds = -(-n_blocks // max(1, workers))
+    left_s = max(60.0 * max_minutes * (1 - MERGE_SHARE) - spent_s, 0.0)
+    return max(left_s / rounds / 60.0, 0.05)
 
 
 def _survey_data(args, gt_images=None):
