@@ -946,6 +946,26 @@ def test_caustic_work_running_past_its_share_is_given_up(caustic_scene):
     assert m.summary()["passes"]["overrun"] == m.drop_reason
 
 
+def test_caustic_work_the_time_left_cannot_hold_is_not_begun(caustic_scene):
+    """A slow start (a cold compiler cache, a busy machine) can leave less time than the plan
+    gave the caustic work: where the time left would not hold the work and training's share
+    after it, the work is not begun and the run trains on as plain 3DGS; where it would, the
+    work's deadline is what the time left allows."""
+    from recgs_addon.core.caustics.estimators import MIN_TRAINING_AFTER
+
+    m = make(caustic_scene, estimator="passes", iterations=400, warmup=200, recurrence_steps=100)
+    m.trainer.cfg.max_minutes = 10.0
+    m.pass_deadline, m.planned_seconds = 300.0, 600.0 * (1 - MIN_TRAINING_AFTER)   # more than is left
+    m.run()
+    assert m.dropped and "would leave training less than 15 %" in m.drop_reason, m.drop_reason
+    assert m.summary()["passes"]["seconds"] == 0.0 and m.trainer.step == 400 and not m.maps
+    fits = make(caustic_scene, estimator="passes", iterations=400, warmup=200, recurrence_steps=100)
+    fits.trainer.cfg.max_minutes = 10.0
+    fits.pass_deadline, fits.planned_seconds = 300.0, 1.0
+    fits.run()
+    assert not fits.dropped or "would leave training" not in fits.drop_reason
+
+
 def test_a_cold_numba_cache_leaves_the_warm_up_its_share(caustic_scene, tmp_path):
     """A fresh machine: numba's cache empty, so its kernels compile in the background while the
     job trains on the eager path. The warm-up's share is counted from its first step, so the plain

@@ -233,6 +233,19 @@ class Estimates:
         t = time.perf_counter()
         tr, data = self.trainer, self.data
         deadline = getattr(self, "pass_deadline", None)
+        limit = tr.time_limit_s
+        if deadline is not None and limit is not None:
+            # what the limit has left now, less the finishing and training's own share: a slow
+            # start (a cold compiler cache, a busy machine) leaves the work less than its plan
+            left = limit - tr.elapsed - tr.finishing_reserve() - MIN_TRAINING_AFTER * limit
+            planned = getattr(self, "planned_seconds", 0.0)
+            if left < planned:
+                why = (f"the caustic work (about {planned:.0f} s) would leave training less than "
+                       f"{100 * MIN_TRAINING_AFTER:.0f} % of the {limit:.0f}-s limit after {tr.elapsed:.0f} s of work "
+                       "before it: trained as plain 3DGS")
+                self.pass_info = {"seconds": 0.0, "overrun": why}
+                return {"estimates": None, "light": {"light_std": None}, "overrun": why}
+            deadline = min(deadline, left)
 
         def check() -> None:   # the work given up where it runs past its share of the time limit
             if deadline is not None and time.perf_counter() - t > deadline:
@@ -494,6 +507,13 @@ def _resize(x: torch.Tensor, height: int, width: int) -> torch.Tensor:
     y = torch.nn.functional.interpolate(x.reshape(1, -1, *x.shape[-2:]).float(), size=(height, width),
                                         mode="bilinear", align_corners=False)
     return y.reshape(*lead, height, width).to(x.dtype)
+
+
+#: The share of a time limit the caustic work leaves to training after it, whatever its plan:
+#: the work is not begun where the time left would not allow both, and it is given up where it
+#: runs into that share (a two-minute job on a busy machine with a cold compiler cache began its
+#: passes 53 s in, ran them 69 s and ended on the warm-up's 100 steps).
+MIN_TRAINING_AFTER = 0.15
 
 
 class _Overrun(Exception):
