@@ -36,6 +36,15 @@ def add_train_arguments(p) -> None:
     TRAIN_OPTIONS.add_to(p)
 
 
+def _peak_device_bytes(device) -> Optional[int]:
+    """The most memory the run's GPU held (CUDA; None on the CPU and elsewhere)."""
+    import torch
+
+    if str(device).startswith("cuda") and torch.cuda.is_available():
+        return int(torch.cuda.max_memory_allocated(device))
+    return None
+
+
 def _parse_budget(text: str):
     if text == "auto":
         return None
@@ -432,7 +441,8 @@ def _finish(args, out, ckpt_path, method, trainer, ccfg, reason, stop, checkpoin
     metrics = {
         "status": "done", "reason": reason, "iterations": trainer.step,
         "seconds": round(trainer.elapsed, 2), "job_seconds": round(time.perf_counter() - t_command, 2),
-        "peak_resident_bytes": peak_resident_bytes(), "finish_seconds": parts,
+        "peak_resident_bytes": peak_resident_bytes(), "peak_device_bytes": _peak_device_bytes(trainer.device),
+        "finish_seconds": parts,
         "reserve_seconds": round(trainer.finishing_reserve(), 2), "reserve_writes": trainer.finishing_writes(),
         "gaussians": int(trainer.params["means"].shape[0]),
         "sh_degree": trainer.sh_degree,
