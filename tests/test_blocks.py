@@ -314,3 +314,13 @@ def test_each_block_gets_its_round_of_the_time_left_after_the_split_and_before_t
         rounds = -(-n // w)
         assert rounds * block_minutes(5.0, 12.0, n, w) * 60 + 12.0 <= 300 * (1 - MERGE_SHARE) + 1e-6
     assert block_minutes(1.0, 500.0, 2, 2) > 0          # spent more than the limit: a token time, not 0
+
+
+def test_a_split_made_from_the_survey_geometry_made_once_is_the_same_split():
+    from recgs_addon.core.blocks.split import split_geometry
+
+    strip = strip_survey()
+    geometry = split_geometry(strip)
+    for n in (2, 3, 4):
+        assert plan_blocks(strip, n, ["img_004.png"], geometry=geometry).to_dict() == \
+            plan_blocks(strip, n, ["img_004.png"]).to_dict()

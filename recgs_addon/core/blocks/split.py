@@ -176,13 +176,22 @@ def _cuts(values: np.ndarray, parts: int) -> list[float]:
     return [-EDGE, *inner, EDGE]
 
 
-def plan_blocks(scene: Scene, n: int, test: list[str], min_share: float = MIN_SHARE,
-                margin: float = MARGIN) -> BlockPlan:
-    """Split ``scene`` into ``n`` blocks (see the module's docstring); ``test``: the survey's
-    held-out photos by name. Refuses (RecGSError) a split that leaves a block too few photos."""
-    if n < 2:
-        raise RecGSError(f"--blocks must be 2 or more to split a survey, got {n}")
-    names = [c.name for c in scene.cameras]
+@dataclass
+class SplitGeometry:
+    """What every split of one survey shares, whatever the count: the seabed plane, the sparse
+    points (a sample) on it, what each photo sees and its footprint's centre, the points' extent."""
+    origin: tuple
+    axes: tuple
+    uv: np.ndarray          # (P, 2) the points on the plane
+    seen: list              # per photo, the indices of the points it sees
+    foot: np.ndarray        # (photos, 2) footprint centres on the plane
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+def split_geometry(scene: Scene) -> SplitGeometry:
+    """:class:`SplitGeometry` of ``scene`` (the visibility test is the costly part: made once for
+    any number of splits tried)."""
     centres = np.stack([np.asarray(c.center, dtype=np.float64) for c in scene.cameras])
     pts = np.asarray(scene.points, dtype=np.float64)
     if len(pts) > VISIBILITY_POINTS:
@@ -196,13 +205,26 @@ def plan_blocks(scene: Scene, n: int, test: list[str], min_share: float = MIN_SH
     foot = np.stack([np.median(uv[s], axis=0) if len(s) else plane.plane_coords(centres[i:i + 1])[0]
                      for i, s in enumerate(seen)])
     lo, hi = np.percentile(uv, [2, 98], axis=0) if len(uv) else (foot.min(0), foot.max(0))
+    return SplitGeometry(tuple(origin), axes, uv, seen, foot, lo, hi)
+
+
+def plan_blocks(scene: Scene, n: int, test: list[str], min_share: float = MIN_SHARE,
+                margin: float = MARGIN, geometry: Optional[SplitGeometry] = None) -> BlockPlan:
+    """Split ``scene`` into ``n`` blocks (see the module's docstring); ``test``: the survey's
+    held-out photos by name; ``geometry``: the survey's :func:`split_geometry`, where it is made
+    already. Refuses (RecGSError) a split that leaves a block too few photos."""
+    if n < 2:
+        raise RecGSError(f"--blocks must be 2 or more to split a survey, got {n}")
+    names = [c.name for c in scene.cameras]
+    g = geometry if geometry is not None else split_geometry(scene)
+    origin, axes, uv, seen, foot, lo, hi = g.origin, g.axes, g.uv, g.seen, g.foot, g.lo, g.hi
     cols, rows = _grid(n, hi[0] - lo[0], hi[1] - lo[1])
     cells = []
     ucut = _cuts(foot[:, 0], cols)
     for c in range(cols):
         in_col = (foot[:, 0] >= ucut[c]) & (foot[:, 0] < ucut[c + 1])
         vcut = _cuts(foot[in_col, 1], rows)
-        cells += [Cell(tuple(origin), axes, (ucut[c], ucut[c + 1], vcut[r], vcut[r + 1])) for r in range(rows)]
+        cells += [Cell(origin, axes, (ucut[c], ucut[c + 1], vcut[r], vcut[r + 1])) for r in range(rows)]
     # the margin: a share of the cells' shorter side, the outer sides taken at the points' extent
     sides = []
     for cell in cells:
@@ -237,9 +259,10 @@ def plan_blocks(scene: Scene, n: int, test: list[str], min_share: float = MIN_SH
 def fewest_duplicating(scene: Scene, test: list[str], n: int, max_duplication: float = MAX_DUPLICATION) -> int:
     """The most blocks, up to ``n``, whose split trains each photo in at most ``max_duplication``
     blocks on average (1: none does, one job)."""
+    geometry = split_geometry(scene) if n > 1 else None
     for k in range(n, 1, -1):
         try:
-            if plan_blocks(scene, k, test).duplication <= max_duplication:
+            if plan_blocks(scene, k, test, geometry=geometry).duplication <= max_duplication:
                 return k
         except RecGSError:
             continue
@@ -270,9 +293,10 @@ def auto_blocks(scene: Scene, test: list[str], one_job_bytes: int, available: Op
         gb = lambda b: f"{b / 2 ** 30:.1f} GB"  # noqa: E731
         room = "" if available is None else f" of {gb(available)}"
         return 1, f"one job: it needs about {gb(one_job_bytes)}{room}, and blocks would only duplicate photos"
+    geometry = split_geometry(scene)
     for k in range(2, most + 1):
         try:
-            plan = plan_blocks(scene, k, test)
+            plan = plan_blocks(scene, k, test, geometry=geometry)
         except RecGSError:
             break
         if one_job_bytes * plan.duplication / k <= available:
