@@ -235,7 +235,7 @@ def survey_bytes(data, sh_degree: int, budget: Optional[int]) -> int:
     level), one step's buffers at the largest view and the model at ``budget`` Gaussians (what
     ``--blocks auto`` weighs against the memory there is)."""
     ids = data.train_ids + data.test_ids
-    pixels = sum(data.sizes[i][0] * data.sizes[i][1] for i in ids)
+    pixels = data.training_pixels(ids)
     largest = max((data.sizes[i][0] * data.sizes[i][1] for i in ids), default=0)
     return int(3 * 1.25 * pixels + PIXEL_BYTES * largest + gaussian_bytes(sh_degree) * (budget or 0))
 

@@ -383,10 +383,8 @@ class MediumMixin:
             return
         vals = fit["medium"].values()
         vals["attenuation"] = np.clip(got["values"], 1e-4, None).tolist()
-        device = fit["medium"].raw.device
-        medium = Medium.from_values(vals)
-        medium.raw = torch.nn.Parameter(medium.raw.detach().to(device))
-        fit["medium"] = medium
+        with torch.no_grad():   # the fitted medium's own parameter, on its device, takes the values
+            fit["medium"].raw.copy_(Medium.from_values(vals).raw)
 
     def _unlit(self, obs: dict) -> None:
         """The observations' colours with the lamp's light taken out (where the run models a
