@@ -141,9 +141,14 @@ def choose_k(residuals: list[torch.Tensor], k_min: int = 5, k_max: int = 25, rat
     """Pick the block size from the residuals' spectrum: the largest ring radius r whose mean
     power per coefficient is still ``ratio`` times the high-frequency floor (median power of
     the rings between 2 * r_max and 4 * r_max cycles), i.e. where the low-frequency (caustic)
-    excess ends. Clamped to [k_min, k_max], odd."""
+    excess ends. Clamped to [k_min, k_max], odd, and on small frames to a radius of an eighth of
+    the smaller side, so that the floor's rings (2 to 4 times the largest radius) lie below the
+    frame's Nyquist frequency: measured nearer to it, the floor was the last rings' noise, every
+    ring below it counted as excess, and a 48 x 36 frame got k = 25, a "low-pass" filter that
+    passes every frequency it has."""
     r_lo, r_hi = check_k(k_min), check_k(k_max)
     smallest = min(min(r.shape[0], r.shape[1]) for r in residuals)
+    r_hi = max(r_lo, min(r_hi, smallest // 8))
     r_far = max(r_hi + 1, min(4 * r_hi, smallest // 2))
     power = radial_power(residuals, r_far)
     floor_rings = power[min(2 * r_hi, r_far - 1):r_far + 1]
