@@ -23,7 +23,13 @@ from the seabed's colour:
    rest trains with the Gaussians, from every pixel.
 2. **At the end**, if the trained water changes the training views by less than
    :data:`MIN_EFFECT` (mean absolute difference, 8-bit levels) between the seabed seen through
-   it and the seabed alone, it is left out of the outputs.
+   it and the seabed alone, it is left out of the outputs. The water never costs more than it
+   gives: where the true colour it leaves would lie above white over more than
+   :data:`MAX_OVER_WHITE` of the seabed seen (clipped in every output), or carry a colour cast
+   stronger than :data:`GREY_WORLD` and than the photos' own (the water tints; taking it out
+   does not tint more), the water is left out and the Gaussians keep the colour the photos
+   show: the water is put into each one's colour at the range the training views see it from
+   (:meth:`MediumMixin.keep_as_seen`), and the report says why.
 
 :class:`MediumMixin` is a part of :class:`~.trainer.Trainer` (its ``cfg``, ``data``, ``params``
 and ``step``); the report reads :meth:`MediumMixin.medium_summary`.
@@ -486,6 +492,86 @@ class MediumMixin:
                                                        f"levels of 255 on average, below {MIN_EFFECT}: left out")
             self.medium = None
             self.medium_optimizer = None
+        self._check_true_colour(ids)
+
+    @torch.no_grad()
+    def _check_true_colour(self, ids: list[int]) -> None:
+        """``auto``: the true colour the trained water leaves, on the training views ``ids``:
+        its share of the seabed above white in some channel, and its cast (the brightest over the
+        weakest channel's mean, linear) against the photos' as the render sees them; where it
+        fails (the module), :meth:`keep_as_seen`."""
+        if self.medium is None or self.cfg.medium != "auto":
+            return
+        over = covered = 0.0
+        true, seen = torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
+        for i in ids:
+            out = self.render_output(i, seen=False)
+            cam, _ = self.data.view(i, 1)
+            on = out.alpha > 0.5
+            if not bool(on.any()):
+                continue
+            covered += float(on.sum())
+            over += float(((out.rgb > 1.0 + 1.0 / 255).any(-1) & on).sum())
+            true += srgb_to_linear(out.rgb.clamp(0, 1))[on].double().sum(0).cpu()
+            seen += srgb_to_linear(self.as_seen(out, cam).clamp(0, 1))[on].double().sum(0).cpu()
+        if covered == 0:
+            return
+        share = over / covered
+        cast = float(true.max() / true.min().clamp_min(1e-6))
+        cast_seen = float(seen.max() / seen.min().clamp_min(1e-6))
+        self.medium_info.update(true_over_white=round(share, 4), true_cast=round(cast, 3),
+                                seen_cast=round(cast_seen, 3))
+        if share > MAX_OVER_WHITE:
+            self.keep_as_seen(f"the true colour the water leaves lies above white on {100 * share:.0f} % of the "
+                              f"seabed seen (at most {100 * MAX_OVER_WHITE:.0f} %; every output would clip it)")
+        elif cast > max(GREY_WORLD, cast_seen):
+            self.keep_as_seen(f"the true colour the water leaves is tinted {cast:.1f} times brighter in one channel "
+                              f"than another, more than the photos through the water ({cast_seen:.1f}) and than "
+                              f"{GREY_WORLD:g}: taking the water out tinted the seabed")
+
+    @torch.no_grad()
+    def keep_as_seen(self, why: str) -> None:
+        """Leave the water out and give the Gaussians the colour the photos show: each one's
+        colour (its SH, to first order beyond the constant term) put through the water at the
+        range the training views see it from (:meth:`gaussian_ranges`)."""
+        rng = self.gaussian_ranges().unsqueeze(-1)   # (N, 1)
+        att, back, veil = (t.detach() for t in self.medium.coefficients())
+
+        def through(c: torch.Tensor) -> torch.Tensor:   # (N, 3) sRGB colour -> as seen
+            lin = srgb_to_linear(c.clamp(0.0, 1.0)) * torch.exp(-att * rng) + veil * (1.0 - torch.exp(-back * rng))
+            return linear_to_srgb(lin.clamp(0.0, 1.0))
+
+        from ..model.gaussians import SH_C0
+        dc, rest = self.params["sh_dc"], self.params["sh_rest"]
+        colour = dc[:, 0] * SH_C0 + 0.5
+        eps = 1e-3
+        slope = (through(colour + eps) - through(colour - eps)) / (2 * eps)
+        dc[:, 0] = (through(colour) - 0.5) / SH_C0
+        rest.mul_(slope.unsqueeze(1))
+        values = self.medium.values()
+        self.medium, self.medium_optimizer, self._held = None, None, None
+        self.medium_info.update(kept=False, as_seen=True, coefficients_left_out=values, reason=(
+            f"{why}: the water is left out and the Gaussians keep the colour the photos show"))
+
+    def gaussian_ranges(self, views: int = DECIDE_VIEWS) -> torch.Tensor:
+        """(N,) each Gaussian's range: its distance from the camera, averaged over up to
+        ``views`` training views weighted by its blending weight in each (the median range where
+        none of them carries it)."""
+        from ..outputs.diagnostics import blending_weights
+
+        means = self.params["means"].detach()
+        total = torch.zeros(means.shape[0], dtype=torch.float64, device=means.device)
+        weight = torch.zeros_like(total)
+        ids = self.data.train_ids[:: max(1, len(self.data.train_ids) // views)][:views]
+        for i in ids:
+            cam = self.data.scene.cameras[i]
+            centre = torch.as_tensor(-cam.R.T @ cam.t, dtype=means.dtype, device=means.device)
+            with torch.enable_grad():   # the weights come from the render's backward
+                w = blending_weights(self, i).detach().to(total)
+            total += w * (means - centre).norm(dim=-1).to(total)
+            weight += w
+        fallback = float(self.medium.length)
+        return torch.where(weight > 0, total / weight.clamp_min(1e-12), fallback).to(means.dtype)
 
     def medium_summary(self) -> dict:
         """What the report and medium.json say: the decision, why, and the coefficients."""
