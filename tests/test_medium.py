@@ -279,6 +279,18 @@ def test_the_water_never_leaves_a_true_colour_above_white_or_tinted(water_scenes
     info = good.medium_info
     assert good.medium is not None and info["kept"], info["reason"]
     assert info["true_over_white"] <= water.MAX_OVER_WHITE and info["true_cast"] <= water.GREY_WORLD, info
+    # each Gaussian's range: its distance from the views whose frame holds it, in float64
+    rng = good.gaussian_ranges(views=4).numpy()
+    ids = good.data.train_ids[:: max(1, len(good.data.train_ids) // 4)][:4]
+    for g in range(0, len(rng), max(1, len(rng) // 40)):
+        x, d = good.params["means"][g].detach().double().numpy(), []
+        for i in ids:
+            cam = good.data.scene.cameras[i]
+            pc = cam.R @ x + cam.t
+            u, v = cam.fx * pc[0] / pc[2] + cam.cx, cam.fy * pc[1] / pc[2] + cam.cy
+            if pc[2] > 0 and 0 <= u < cam.width and 0 <= v < cam.height:
+                d.append(np.linalg.norm(pc))
+        assert rng[g] == pytest.approx(np.mean(d) if d else good.medium.length, rel=1e-5), g
 
     strong = _trained_through(water_scenes, 4.0)
     before = strong.evaluate()["psnr"]

@@ -44,6 +44,7 @@ import torch
 from . import numba_water
 from ..model.colour import linear_to_srgb, srgb_to_linear
 from ..model import jerlov, medium_fit
+from ..model.gaussians import SH_C0
 from ..model.medium import Medium, out_of_water, ray_lengths
 
 #: Median over sparse points of (farthest / nearest training view's range) below which the
@@ -476,47 +477,41 @@ class MediumMixin:
     @torch.no_grad()
     def decide_medium(self) -> None:
         """``auto``: leave the water out when it changes the training views by less than
-        :data:`MIN_EFFECT` 8-bit levels (measured on up to :data:`DECIDE_VIEWS` of them)."""
+        :data:`MIN_EFFECT` 8-bit levels (measured on up to :data:`DECIDE_VIEWS` of them), and
+        where the true colour it leaves fails :meth:`_judge_true_colour` on them."""
         if self.medium is None:
             return
         ids = self.data.train_ids[:: max(1, len(self.data.train_ids) // DECIDE_VIEWS)][:DECIDE_VIEWS]
         diffs = []
-        for i in ids:
-            out = self.render_output(i, seen=False)
-            cam, _ = self.data.view(i, 1)
-            diffs.append(float((self.as_seen(out, cam).clamp(0, 1) - out.rgb.clamp(0, 1)).abs().mean()) * 255)
-        effect = float(np.mean(diffs))
-        self.medium_info["effect_levels"] = effect
-        if self.cfg.medium == "auto" and effect < MIN_EFFECT:
-            self.medium_info.update(kept=False, reason=f"the fitted water changes the photos by {effect:.1f} "
-                                                       f"levels of 255 on average, below {MIN_EFFECT}: left out")
-            self.medium = None
-            self.medium_optimizer = None
-        self._check_true_colour(ids)
-
-    @torch.no_grad()
-    def _check_true_colour(self, ids: list[int]) -> None:
-        """``auto``: the true colour the trained water leaves, on the training views ``ids``:
-        its share of the seabed above white in some channel, and its cast (the brightest over the
-        weakest channel's mean, linear) against the photos' as the render sees them; where it
-        fails (the module), :meth:`keep_as_seen`."""
-        if self.medium is None or self.cfg.medium != "auto":
-            return
         over = covered = 0.0
         true, seen = torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
         for i in ids:
             out = self.render_output(i, seen=False)
             cam, _ = self.data.view(i, 1)
-            on = out.alpha > 0.5
-            if not bool(on.any()):
-                continue
+            shown = self.as_seen(out, cam).clamp(0, 1)
+            diffs.append(float((shown - out.rgb.clamp(0, 1)).abs().mean()) * 255)
+            on = out.alpha > 0.5   # the seabed the view covers
             covered += float(on.sum())
             over += float(((out.rgb > 1.0 + 1.0 / 255).any(-1) & on).sum())
             true += srgb_to_linear(out.rgb.clamp(0, 1))[on].double().sum(0).cpu()
-            seen += srgb_to_linear(self.as_seen(out, cam).clamp(0, 1))[on].double().sum(0).cpu()
-        if covered == 0:
+            seen += srgb_to_linear(shown)[on].double().sum(0).cpu()
+        effect = float(np.mean(diffs))
+        self.medium_info["effect_levels"] = effect
+        if self.cfg.medium != "auto":
             return
-        share = over / covered
+        if effect < MIN_EFFECT:
+            self.medium_info.update(kept=False, reason=f"the fitted water changes the photos by {effect:.1f} "
+                                                       f"levels of 255 on average, below {MIN_EFFECT}: left out")
+            self.medium = None
+            self.medium_optimizer = None
+        elif covered > 0:
+            self._judge_true_colour(over / covered, true, seen)
+
+    def _judge_true_colour(self, share: float, true: torch.Tensor, seen: torch.Tensor) -> None:
+        """The true colour the trained water leaves on the views :meth:`decide_medium` rendered:
+        ``share`` of the seabed they cover above white in some channel, and its cast (the
+        brightest over the weakest channel's mean, linear, of ``true``) against the render's as
+        the photos see it (``seen``); where it fails (the module), :meth:`keep_as_seen`."""
         cast = float(true.max() / true.min().clamp_min(1e-6))
         cast_seen = float(seen.max() / seen.min().clamp_min(1e-6))
         self.medium_info.update(true_over_white=round(share, 4), true_cast=round(cast, 3),
@@ -541,7 +536,6 @@ class MediumMixin:
             lin = srgb_to_linear(c.clamp(0.0, 1.0)) * torch.exp(-att * rng) + veil * (1.0 - torch.exp(-back * rng))
             return linear_to_srgb(lin.clamp(0.0, 1.0))
 
-        from ..model.gaussians import SH_C0
         dc, rest = self.params["sh_dc"], self.params["sh_rest"]
         colour = dc[:, 0] * SH_C0 + 0.5
         eps = 1e-3
@@ -553,25 +547,27 @@ class MediumMixin:
         self.medium_info.update(kept=False, as_seen=True, coefficients_left_out=values, reason=(
             f"{why}: the water is left out and the Gaussians keep the colour the photos show"))
 
+    @torch.no_grad()
     def gaussian_ranges(self, views: int = DECIDE_VIEWS) -> torch.Tensor:
-        """(N,) each Gaussian's range: its distance from the camera, averaged over up to
-        ``views`` training views weighted by its blending weight in each (the median range where
-        none of them carries it)."""
-        from ..outputs.diagnostics import blending_weights
-
-        means = self.params["means"].detach()
+        """(N,) each Gaussian's range: its distance from the camera, averaged over those of up to
+        ``views`` training views (spread through the survey) whose frame holds it in front of the
+        camera (the survey's median range where none does)."""
+        means = self.params["means"].detach().double()
         total = torch.zeros(means.shape[0], dtype=torch.float64, device=means.device)
-        weight = torch.zeros_like(total)
+        count = torch.zeros_like(total)
         ids = self.data.train_ids[:: max(1, len(self.data.train_ids) // views)][:views]
         for i in ids:
             cam = self.data.scene.cameras[i]
-            centre = torch.as_tensor(-cam.R.T @ cam.t, dtype=means.dtype, device=means.device)
-            with torch.enable_grad():   # the weights come from the render's backward
-                w = blending_weights(self, i).detach().to(total)
-            total += w * (means - centre).norm(dim=-1).to(total)
-            weight += w
+            R = torch.as_tensor(cam.R, dtype=torch.float64, device=means.device)
+            p = means @ R.T + torch.as_tensor(cam.t, dtype=torch.float64, device=means.device)
+            z = p[:, 2]
+            u = cam.fx * p[:, 0] / z.clamp_min(1e-9) + cam.cx
+            v = cam.fy * p[:, 1] / z.clamp_min(1e-9) + cam.cy
+            seen = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+            total += torch.where(seen, p.norm(dim=-1), 0.0)
+            count += seen.double()
         fallback = float(self.medium.length)
-        return torch.where(weight > 0, total / weight.clamp_min(1e-12), fallback).to(means.dtype)
+        return torch.where(count > 0, total / count.clamp_min(1.0), fallback).to(self.params["means"].dtype)
 
     def medium_summary(self) -> dict:
         """What the report and medium.json say: the decision, why, and the coefficients."""
