@@ -300,6 +300,9 @@ def test_the_water_never_leaves_a_true_colour_above_white_or_tinted(water_scenes
     assert info["true_over_white"] > water.MAX_OVER_WHITE and "above white" in info["reason"]
     assert "keep the colour the photos show" in info["reason"] and info["coefficients_left_out"]["attenuation"]
     assert strong.evaluate()["psnr"] > before - 0.5
+    from recgs_addon.core.outputs.report import _water_section
+    section = "\n".join(_water_section(strong.medium_summary()))
+    assert "Trained, then left out" in section and "above white" in section, section
 
     tinted = _trained_through(water_scenes)
     seen_before = [tinted.render_output(i).rgb.clamp(0, 1) for i in tinted.data.train_ids[:3]]

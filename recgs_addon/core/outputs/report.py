@@ -276,14 +276,25 @@ def _water_prior(medium: dict) -> list[str]:
     return ["", text]
 
 
+def _rgb3(v) -> str:
+    return " / ".join(f"{x:.3f}" for x in v)
+
+
 def _water_section(medium: dict) -> list[str]:
     """The fitted water: coefficients per channel (and what the sparse points gave before training)."""
     coef = medium.get("coefficients")
     if not coef:   # not modelled: why, and what the survey pins of it
         if not medium.get("pinning"):
             return []
-        return ["", "## The water", "", f"Not modelled: {medium.get('reason', '')}."] + _water_pinning(medium)
-    rgb = lambda v: " / ".join(f"{x:.3f}" for x in v)  # noqa: E731
+        left = medium.get("coefficients_left_out") if medium.get("as_seen") else None
+        if left:   # trained, then left out at the end: what it was
+            head = [f"Trained, then left out: {medium.get('reason', '')}. The water it had (per scene unit, red / "
+                    f"green / blue): attenuation {_rgb3(left['attenuation'])}, backscatter "
+                    f"{_rgb3(left['backscatter'])}, veil {_rgb3(left['veil'])}."]
+        else:
+            head = [f"Not modelled: {medium.get('reason', '')}."]
+        return ["", "## The water", ""] + head + _water_pinning(medium)
+    rgb = _rgb3
     lines = ["", "## The water", "",
              "Fitted with the Gaussians, which hold the seabed's true colour; `medium.json` has the numbers and "
              "`truecolour/` the photos taken out of the water. Per scene unit (metres where the survey's poses "
