@@ -529,12 +529,10 @@ class MediumMixin:
         """Leave the water out and give the Gaussians the colour the photos show: each one's
         colour (its SH, to first order beyond the constant term) put through the water at the
         range the training views see it from (:meth:`gaussian_ranges`)."""
-        rng = self.gaussian_ranges().unsqueeze(-1)   # (N, 1)
-        att, back, veil = (t.detach() for t in self.medium.coefficients())
+        rng = self.gaussian_ranges()   # (N,): each colour (N, 3) is seen as a pixel at that range
 
-        def through(c: torch.Tensor) -> torch.Tensor:   # (N, 3) sRGB colour -> as seen
-            lin = srgb_to_linear(c.clamp(0.0, 1.0)) * torch.exp(-att * rng) + veil * (1.0 - torch.exp(-back * rng))
-            return linear_to_srgb(lin.clamp(0.0, 1.0))
+        def through(c: torch.Tensor) -> torch.Tensor:
+            return self.medium.see_at(c, rng)
 
         dc, rest = self.params["sh_dc"], self.params["sh_rest"]
         colour = dc[:, 0] * SH_C0 + 0.5
