@@ -280,8 +280,8 @@ def test_the_water_never_leaves_a_true_colour_above_white_or_tinted(water_scenes
     assert good.medium is not None and info["kept"], info["reason"]
     assert info["true_over_white"] <= water.MAX_OVER_WHITE and info["true_cast"] <= water.GREY_WORLD, info
     # each Gaussian's range: its distance from the views whose frame holds it, in float64
-    rng = good.gaussian_ranges(views=4).numpy()
     ids = good.data.train_ids[:: max(1, len(good.data.train_ids) // 4)][:4]
+    rng = good.gaussian_ranges(ids).numpy()
     for g in range(0, len(rng), max(1, len(rng) // 40)):
         x, d = good.params["means"][g].detach().double().numpy(), []
         for i in ids:

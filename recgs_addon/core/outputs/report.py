@@ -294,17 +294,16 @@ def _water_section(medium: dict) -> list[str]:
         else:
             head = [f"Not modelled: {medium.get('reason', '')}."]
         return ["", "## The water", ""] + head + _water_pinning(medium)
-    rgb = _rgb3
     lines = ["", "## The water", "",
              "Fitted with the Gaussians, which hold the seabed's true colour; `medium.json` has the numbers and "
              "`truecolour/` the photos taken out of the water. Per scene unit (metres where the survey's poses "
              f"are in metres), red / green / blue; {medium.get('reason', '')}.", "",
              "| | attenuation | backscatter | veil (linear) |", "|---|---|---|---|",
-             f"| fitted | {rgb(coef['attenuation'])} | {rgb(coef['backscatter'])} | {rgb(coef['veil'])} |"]
+             f"| fitted | {_rgb3(coef['attenuation'])} | {_rgb3(coef['backscatter'])} | {_rgb3(coef['veil'])} |"]
     pre = medium.get("prefit_coefficients")
     if pre:
-        lines.append(f"| from the sparse points, before training | {rgb(pre['attenuation'])} | "
-                     f"{rgb(pre['backscatter'])} | {rgb(pre['veil'])} |")
+        lines.append(f"| from the sparse points, before training | {_rgb3(pre['attenuation'])} | "
+                     f"{_rgb3(pre['backscatter'])} | {_rgb3(pre['veil'])} |")
     lines += _water_pinning(medium) + _water_prior(medium) + _water_under_light(medium) + _water_kept(medium)
     if medium.get("cues"):
         lines += ["", "Where the fit disagrees with what natural waters and seabeds look like (said, not overruled):", ""]
@@ -339,7 +338,7 @@ def _water_under_light(medium: dict) -> list[str]:
     if not under or "light_noise" not in under:
         return []
     light, noise = under["light_noise"]
-    plain = " / ".join(f"{x:.3f}" for x in under.get("plain_attenuation", []))
+    plain = _rgb3(under.get("plain_attenuation", []))
     if under.get("under_light"):
         return ["", f"The photos hold moving light (caustics): the points' fit measured it, a grey gain on the seabed "
                     f"from view to view ({light:.2f} log units, {light / max(noise, 1e-9):.0f} times the photos' own "

@@ -481,7 +481,7 @@ class MediumMixin:
         where the true colour it leaves fails :meth:`_judge_true_colour` on them."""
         if self.medium is None:
             return
-        ids = self.data.train_ids[:: max(1, len(self.data.train_ids) // DECIDE_VIEWS)][:DECIDE_VIEWS]
+        ids = self._decide_views()
         diffs = []
         over = covered = 0.0
         true, seen = torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
@@ -507,6 +507,12 @@ class MediumMixin:
         elif covered > 0:
             self._judge_true_colour(over / covered, true, seen)
 
+    def _decide_views(self) -> list[int]:
+        """The training views the end-of-run decision renders: up to :data:`DECIDE_VIEWS`,
+        spread through the survey."""
+        ids = self.data.train_ids
+        return ids[:: max(1, len(ids) // DECIDE_VIEWS)][:DECIDE_VIEWS]
+
     def _judge_true_colour(self, share: float, true: torch.Tensor, seen: torch.Tensor) -> None:
         """The true colour the trained water leaves on the views :meth:`decide_medium` rendered:
         ``share`` of the seabed they cover above white in some channel, and its cast (the
@@ -527,45 +533,35 @@ class MediumMixin:
     @torch.no_grad()
     def keep_as_seen(self, why: str) -> None:
         """Leave the water out and give the Gaussians the colour the photos show: each one's
-        colour (its SH, to first order beyond the constant term) put through the water at the
-        range the training views see it from (:meth:`gaussian_ranges`)."""
-        rng = self.gaussian_ranges()   # (N,): each colour (N, 3) is seen as a pixel at that range
-
-        def through(c: torch.Tensor) -> torch.Tensor:
-            return self.medium.see_at(c, rng)
-
+        colour (its SH, to first order beyond the constant term) put through the water
+        (:meth:`Medium.see_at`) at the range the decision's views see it from (:meth:`gaussian_ranges`)."""
+        rng = self.gaussian_ranges(self._decide_views())   # (N,): each colour (N, 3) seen as a pixel at that range
+        see = self.medium.see_at
         dc, rest = self.params["sh_dc"], self.params["sh_rest"]
         colour = dc[:, 0] * SH_C0 + 0.5
         eps = 1e-3
-        slope = (through(colour + eps) - through(colour - eps)) / (2 * eps)
-        dc[:, 0] = (through(colour) - 0.5) / SH_C0
+        slope = (see(colour + eps, rng) - see(colour - eps, rng)) / (2 * eps)
+        dc[:, 0] = (see(colour, rng) - 0.5) / SH_C0
         rest.mul_(slope.unsqueeze(1))
         values = self.medium.values()
         self.medium, self.medium_optimizer, self._held = None, None, None
         self.medium_info.update(kept=False, as_seen=True, coefficients_left_out=values, reason=(
             f"{why}: the water is left out and the Gaussians keep the colour the photos show"))
 
-    @torch.no_grad()
-    def gaussian_ranges(self, views: int = DECIDE_VIEWS) -> torch.Tensor:
-        """(N,) each Gaussian's range: its distance from the camera, averaged over those of up to
-        ``views`` training views (spread through the survey) whose frame holds it in front of the
-        camera (the survey's median range where none does)."""
-        means = self.params["means"].detach().double()
-        total = torch.zeros(means.shape[0], dtype=torch.float64, device=means.device)
-        count = torch.zeros_like(total)
-        ids = self.data.train_ids[:: max(1, len(self.data.train_ids) // views)][:views]
+    def gaussian_ranges(self, ids: list[int]) -> torch.Tensor:
+        """(N,) each Gaussian's range: its distance from the camera centre, averaged over the
+        training views ``ids`` whose frame holds it in front of the camera (``Camera.project``;
+        the survey's median range where none does)."""
+        means = self.params["means"].detach().cpu().double().numpy()
+        total, count = np.zeros(len(means)), np.zeros(len(means))
         for i in ids:
             cam = self.data.scene.cameras[i]
-            R = torch.as_tensor(cam.R, dtype=torch.float64, device=means.device)
-            p = means @ R.T + torch.as_tensor(cam.t, dtype=torch.float64, device=means.device)
-            z = p[:, 2]
-            u = cam.fx * p[:, 0] / z.clamp_min(1e-9) + cam.cx
-            v = cam.fy * p[:, 1] / z.clamp_min(1e-9) + cam.cy
-            seen = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-            total += torch.where(seen, p.norm(dim=-1), 0.0)
-            count += seen.double()
-        fallback = float(self.medium.length)
-        return torch.where(count > 0, total / count.clamp_min(1.0), fallback).to(self.params["means"].dtype)
+            uv, z = cam.project(means)
+            seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+            total += np.where(seen, np.linalg.norm(means - cam.center, axis=1), 0.0)
+            count += seen
+        rng = np.where(count > 0, total / np.maximum(count, 1), float(self.medium.length))
+        return torch.as_tensor(rng, dtype=self.params["means"].dtype, device=self.params["means"].device)
 
     def medium_summary(self) -> dict:
         """What the report and medium.json say: the decision, why, and the coefficients."""
