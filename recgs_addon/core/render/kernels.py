@@ -21,6 +21,9 @@ class _Kernels(NamedTuple):
     #: numba's whole-view kernels (:class:`.numba_kernels.NumbaKernels`): they replace the
     #: per-chunk ones of :mod:`.chunks` for float32 renders (float64 ones take the eager kernels)
     numba: object = None
+    #: Triton's GPU compositing kernels (:class:`.triton_kernels.TritonKernels`): they replace
+    #: the per-chunk ones of :mod:`.chunks`; projection and colour stay eager torch on the device
+    triton: object = None
 
 
 _KERNEL_CACHE: dict = {}

@@ -45,7 +45,8 @@ from .composite import _Composite
 from .kernels import _KERNEL_CACHE, _Kernels, _compiled_kernels, _sh_fn, _smoke_test
 from .numba_path import _CompositeNumba, _ProjectNumba
 from .projection import ALPHA_MIN, _index_rows, camera_centre, project_gaussians
-from .tiles import _Plan, _build_plan
+from .tiles import _Plan, _build_plan, _flat_plan
+from .triton_path import _CompositeTriton
 
 #: Default near plane (scene units), INRIA.
 DEFAULT_NEAR = 0.2
@@ -54,6 +55,8 @@ DEFAULT_TILE_SIZE = 4
 #: Default number of (pixel, Gaussian) pairs per chunk: bounds the temporaries of a pass to
 #: roughly 60 bytes x this and keeps the working set in cache (2^16..2^20 measured).
 DEFAULT_CHUNK_PAIRS = 1 << 18
+#: Tile edge of the GPU path (Triton): a tile's 256 pixels are one program's lanes.
+TRITON_TILE_SIZE = 16
 
 
 class RenderOutput(NamedTuple):
@@ -98,9 +101,13 @@ def _smoke_render() -> None:
 def get_kernels(compiled: Optional[bool]) -> _Kernels:
     """The per-pair kernels: eager (``compiled=False``), ``torch.compile``d (``True``, raises
     if compilation fails), compiled-if-possible (``None``, warns once and falls back) or
-    numba's (``"numba"``: no C++ compiler needed; the rest of the render runs eagerly)."""
+    numba's (``"numba"``: no C++ compiler needed; the rest of the render runs eagerly) or the
+    eager ones marked for Triton's compositing (``"triton"``: :func:`_triton_kernels` loads
+    them in the render, for its device)."""
     if compiled is False:
         return _Kernels(_chunk_forward, _chunk_backward, False)
+    if compiled == "triton":   # the GPU kernels; on CPU tensors in Triton's interpreter (tests)
+        return _Kernels(_chunk_forward, _chunk_backward, False, triton=True)
     if compiled == "numba":   # compiled without a C++ compiler; eager if numba is missing
         from . import numba_kernels
         nk = numba_kernels.load(ALPHA_MIN, ALPHA_MAX, T_MIN)
@@ -131,6 +138,17 @@ def get_kernels(compiled: Optional[bool]) -> _Kernels:
             _KERNEL_CACHE["warned"] = True
         return _Kernels(_chunk_forward, _chunk_backward, False)
     return kern
+
+
+def _triton_kernels(device: torch.device):
+    """Triton's compositing kernels for tensors on ``device`` (compiled for a CUDA device, in
+    the interpreter for CPU tensors), or None with a warning, once: the eager path then."""
+    from . import triton_kernels
+    tk = triton_kernels.load(ALPHA_MIN, ALPHA_MAX, T_MIN, device=device.type)
+    if tk is None and "warned_triton" not in _KERNEL_CACHE:
+        warnings.warn(f"Triton kernels unavailable ({triton_kernels.error()!r}); using the eager rasterizer")
+        _KERNEL_CACHE["warned_triton"] = True
+    return tk
 
 
 def _render_numba(nk, means, log_scales, quats, logit_opacities, blocks, viewmat, K, width: int,
@@ -210,7 +228,10 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
         near: near plane (scene units); Gaussians with camera-space z <= near are culled.
         tile_size: tile edge in pixels (binning granularity; results do not depend on it).
         compiled: run the per-pair maths through ``torch.compile`` (True), eagerly (False)
-            or compiled when a compiler works, else eagerly with a warning (None).
+            or compiled when a compiler works, else eagerly with a warning (None); ``"numba"``:
+            numba's kernels (CPU, float32); ``"triton"``: the compositing in Triton's fused
+            kernels (a CUDA device, float32; CPU tensors only in Triton's interpreter), in
+            16x16 tiles whatever ``tile_size``, projection and colour eager on the device.
         chunk_pairs: (pixel, Gaussian) pairs per chunk (working-set size).
         low_memory: keep no per-pair state between forward and backward (the backward
             replays the forward chunk by chunk): about 8 bytes less per pair, ~1/3 slower.
@@ -268,14 +289,22 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
     if means2d.requires_grad:
         means2d.retain_grad()
 
-    plan = _build_plan(proj, width, height, tile_size, chunk_pairs, kern.compiled)
-    plan.weights = weights
-    acc = _Composite.apply(means2d, proj.chol.to(dtype), proj.opacity.to(dtype), values,
-                           proj.means2d.detach(), ids, plan, kern, low_memory)
+    # float32 renders (float64 ones stay eager, as on numba's path: the kernels are float32)
+    tk = _triton_kernels(means.device) if kern.triton and dtype == torch.float32 else None
+    if tk is not None:
+        plan = _flat_plan(proj, width, height, TRITON_TILE_SIZE)
+        plan.weights = weights
+        acc = _CompositeTriton.apply(means2d, proj.chol.to(dtype), proj.opacity.to(dtype), values,
+                                     proj.means2d.detach(), ids, plan, tk)
+    else:
+        plan = _build_plan(proj, width, height, tile_size, chunk_pairs, kern.compiled)
+        plan.weights = weights
+        acc = _Composite.apply(means2d, proj.chol.to(dtype), proj.opacity.to(dtype), values,
+                               proj.means2d.detach(), ids, plan, kern, low_memory)
     alpha = acc[..., 4]
     rgb = acc[..., 0:3] + (1.0 - alpha).unsqueeze(-1) * background
     stats = dict(visible=int(ids.shape[0]), intersections=plan.intersections,
                  pairs=plan.pairs, chunks=len(plan.chunks), compiled=kern.compiled,
-                 path="compiled" if kern.compiled else "eager")
+                 path="triton" if tk is not None else "compiled" if kern.compiled else "eager")
     return RenderOutput(rgb=rgb, alpha=alpha, depth=acc[..., 3], means2d=means2d,
                         radii=proj.radii, stats=stats)

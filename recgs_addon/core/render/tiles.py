@@ -105,6 +105,29 @@ def _row_spans_compiled(*args):
         return _KERNEL_CACHE["spans"](*args)
 
 
+def _sort_by_tile(rows: torch.Tensor, tile: torch.Tensor, n_tiles: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The intersections (visible row, tile) in (tile, depth) order: (rows (M,), count per tile
+    (n_tiles,)). Rows come in depth order, so a stable sort by tile keeps depth order inside a
+    tile; int32 keys: torch's stable CPU sort is a radix sort for them (~20x faster than int64)."""
+    tile_sorted, perm = torch.sort(tile.to(torch.int32), stable=True)
+    return rows.index_select(0, perm), torch.bincount(tile_sorted, minlength=n_tiles)
+
+
+def _flat_plan(proj, width: int, height: int, tile_size: int) -> _Plan:
+    """The binning of the GPU path: no chunks, no padding; ``isect_rows`` (M,) int32 and
+    ``tile_start`` (n_tiles + 1,) int64 as numba's path has them (built on the device)."""
+    ts = tile_size
+    plan = _Plan(width, height, ts, -(-width // ts), -(-height // ts), int(proj.ids.shape[0]))
+    n_tiles = plan.tiles_x * plan.tiles_y
+    rows, tile = _tile_intersections(proj, width, height, ts, False)
+    rows_sorted, count = _sort_by_tile(rows, tile, n_tiles)
+    plan.isect_rows = rows_sorted.to(torch.int32)
+    plan.tile_start = torch.cat([count.new_zeros(1), torch.cumsum(count, 0)])
+    plan.intersections = int(rows.shape[0])
+    plan.pairs = plan.intersections * ts * ts
+    return plan
+
+
 def _build_plan(proj, width: int, height: int, tile_size: int, chunk_pairs: int,
                 compiled: bool = False) -> _Plan:
     ts = tile_size
@@ -119,11 +142,8 @@ def _build_plan(proj, width: int, height: int, tile_size: int, chunk_pairs: int,
         plan.slot_rows = torch.zeros(0, dtype=torch.int64, device=rows.device)
         plan.slot_tiles = torch.zeros(0, dtype=torch.int64, device=rows.device)
         return plan
-    # Rows are in depth order, so a stable sort by tile gives (tile, depth) order.
-    # int32 keys: torch's stable CPU sort is a radix sort for them (~20x faster than int64).
-    tile_sorted, perm = torch.sort(tile.to(torch.int32), stable=True)
-    rows_ext = torch.cat([rows.index_select(0, perm), torch.tensor([n_vis], device=rows.device)])
-    tile_count = torch.bincount(tile_sorted, minlength=n_tiles)
+    rows_sorted, tile_count = _sort_by_tile(rows, tile, n_tiles)
+    rows_ext = torch.cat([rows_sorted, torch.tensor([n_vis], device=rows.device)])
     tile_start = torch.cumsum(tile_count, 0) - tile_count
     # Chunks of tiles with similar list lengths (longest first) keep padding small.
     order = torch.sort(tile_count, descending=True, stable=True).indices

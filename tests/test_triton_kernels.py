@@ -1,0 +1,187 @@
+"""The GPU path's fused compositing kernels (core/render/triton_kernels.py) against the eager
+torch oracle, run in Triton's interpreter (no GPU needed): images, radii, every gradient and
+the blending weights, on the scenes that break rasterizers (the clamp and the stop on dense
+stacks, one pixel under thousands of Gaussians, empty tiles, frames not a multiple of the
+tile). Triton fixes interpreter or compiler when it is first imported, so the cases run in
+one child process with ``TRITON_INTERPRET=1`` and report their errors; the tests read them.
+
+Run alone: ``TRITON_INTERPRET=1 .venv/bin/python tests/test_triton_kernels.py`` prints them."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+needs_triton = pytest.mark.skipif(importlib.util.find_spec("triton") is None,
+                                  reason="Triton is not installed here (requirements-dev.txt has it)")
+
+
+# ------------------------------------------------------------------------------ the child
+
+def _errors(a, pa, b, pb, names):
+    """Largest differences: images relative to max(1, |eager|), gradients relative to the
+    largest eager gradient of each input; whether all are finite; the paths taken."""
+    import torch
+    out = {"path": b.stats["path"], "radii_equal": bool(torch.equal(a.radii, b.radii))}
+    for key in ("rgb", "alpha", "depth"):
+        x, y = getattr(a, key).detach(), getattr(b, key).detach()
+        out[key] = float((x - y).abs().max()) / max(1.0, float(x.abs().max()))
+    finite = all(bool(torch.isfinite(t).all()) for t in [b.rgb, b.alpha, b.depth, b.means2d.grad]
+                 + [p.grad for p in pb])
+    for name, x, y in zip(("means2d",) + names, [a.means2d.grad] + [p.grad for p in pa],
+                          [b.means2d.grad] + [p.grad for p in pb]):
+        out["d_" + name] = float((x - y).abs().max()) / max(1.0, float(x.abs().max()))
+    out["finite"] = finite
+    out["alpha_max"] = float(b.alpha.detach().max())
+    return out
+
+
+def _cases():
+    import torch
+
+    sys.path[:0] = [HERE, ROOT]
+    import test_rasterizer as tr
+
+    def compare(scene, dtype=torch.float32, **kw):
+        a, pa = tr.render_and_backward(scene, dtype, compiled=False, **kw)
+        b, pb = tr.render_and_backward(scene, dtype, compiled="triton", **kw)
+        return _errors(a, pa, b, pb, tr.PARAM_NAMES)
+
+    res = {}
+    for seed, deg, aa in [(0, 3, False), (1, 0, True), (2, 1, False)]:
+        res[f"random-{seed}"] = compare(tr.make_scene(seed, n=60, deg=deg), antialiased=aa)
+    res["dense"] = compare(tr.make_scene(8, n=150, width=36, height=20, logit=(3.0, 2.0)))
+    res["odd-frame"] = compare(tr.make_scene(3, n=80, width=37, height=29, logit=(2.0, 2.0)))
+    res["one-pixel"] = compare(tr._rounded(tr.one_pixel_stack(2000)))
+    s = tr.single_camera_scene(6)
+    s["params"][0][:] = [[-0.5, -0.4, 1.0], [-0.45, -0.38, 1.2], [1e4, 0, 1.0], [0, -50.0, 1.0],
+                         [30.0, 0, 1.0], [0.0, 0.0, -2.0]]
+    s["params"][1][:] = np.log(0.02)
+    s["params"][1][4] = np.log([40.0, 40.0, 40.0])     # centre off-screen, covers the image
+    s = dict(s, width=40, height=34)
+    res["off-screen"] = compare(tr._rounded(s))
+    s["params"][1][4] = np.log(0.02)                    # now nothing reaches most tiles
+    res["empty-tiles"] = compare(tr._rounded(s))
+    b, _ = tr.run(s, torch.float32, compiled="triton")
+    res["empty-tiles"]["corner_alpha"] = float(b.alpha[-6:, -6:].abs().max())
+    res["float64"] = {"path": tr.run(tr.make_scene(0, n=20), torch.float64, compiled="triton")[0].stats["path"]}
+    # blending weights: against the eager path's, and their sum is the image's alpha
+    scene = tr.make_scene(8, n=150, width=36, height=20, logit=(3.0, 2.0))
+    a, _, wa = tr._weights_of(scene, torch.float32, compiled=False)
+    b, _, wb = tr._weights_of(scene, torch.float32, compiled="triton")
+    alpha = float(b.alpha.detach().sum())
+    res["weights"] = {"err": float((wa - wb).abs().max() / wa.abs().max()),
+                      "sum_err": abs(float(wb.sum()) - alpha) / alpha, "path": b.stats["path"]}
+    return res
+
+
+# ------------------------------------------------------------------------------ the tests
+
+@pytest.fixture(scope="module")
+def results():
+    env = dict(os.environ, TRITON_INTERPRET="1")
+    res = subprocess.run([sys.executable, os.path.abspath(__file__)], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+FIELDS = ("rgb", "alpha", "depth")
+GRADS = ("d_means2d", "d_means", "d_log_scales", "d_quats", "d_logit_opacities", "d_sh")
+
+
+def _assert_matches(r):
+    """As numba's path against the eager one: images to 1e-6, gradients to 1e-5 (float32
+    summation order and exp), radii exactly (the same projection), nothing non-finite."""
+    assert r["path"] == "triton"
+    assert r["finite"] and r["radii_equal"]
+    for k in FIELDS:
+        assert r[k] <= 1e-6, (k, r[k])
+    for k in GRADS:
+        assert r[k] <= 1e-5, (k, r[k])
+
+
+@needs_triton
+@pytest.mark.parametrize("case", ["random-0", "random-1", "random-2", "odd-frame"])
+def test_triton_matches_eager(results, case):
+    """Random scenes (SH 0-3, antialiased or not), a frame not a multiple of the 16-px tile."""
+    _assert_matches(results[case])
+
+
+@needs_triton
+def test_triton_matches_eager_where_the_clamp_and_the_stop_fire(results):
+    _assert_matches(results["dense"])
+    assert results["dense"]["alpha_max"] > 0.9999 - 1e-6
+
+
+@needs_triton
+def test_triton_matches_eager_on_one_pixel_under_2000_gaussians(results):
+    """The list goes on long after every pixel stopped: the loops end at the stop."""
+    _assert_matches(results["one-pixel"])
+    assert results["one-pixel"]["alpha_max"] > 0.999
+
+
+@needs_triton
+def test_triton_matches_eager_with_off_screen_and_empty_tiles(results):
+    _assert_matches(results["off-screen"])
+    _assert_matches(results["empty-tiles"])
+    assert results["empty-tiles"]["corner_alpha"] == 0.0
+
+
+@needs_triton
+def test_triton_blending_weights_match_eager(results):
+    r = results["weights"]
+    assert r["path"] == "triton"
+    assert r["err"] <= 1e-5 and r["sum_err"] <= 1e-4
+
+
+@needs_triton
+def test_float64_renders_stay_on_the_eager_path(results):
+    """The kernels composite in float32; a float64 render (the checks' precision) is eager."""
+    assert results["float64"]["path"] == "eager"
+
+
+def test_cpu_tensors_outside_the_interpreter_fall_back_to_eager():
+    """In a process that compiles Triton's kernels (or has no Triton), CPU tensors asked for
+    the Triton path render eagerly, with one warning that says why."""
+    import torch
+
+    sys.path[:0] = [HERE, ROOT]
+    import test_rasterizer as tr
+    from recgs_addon.core.render import kernels, triton_kernels
+
+    if triton_kernels.interpreting():
+        pytest.skip("this process runs Triton's interpreter")
+    kernels._KERNEL_CACHE.pop("warned_triton", None)
+    scene = tr.make_scene(0, n=20)
+    with pytest.warns(UserWarning, match="Triton kernels unavailable"):
+        out, _ = tr.run(scene, torch.float32, compiled="triton")
+    ref, _ = tr.run(scene, torch.float32, compiled=False)
+    assert out.stats["path"] == "eager" and torch.equal(out.rgb, ref.rgb)
+
+
+def test_a_cuda_device_trains_on_the_triton_path_where_it_loads(monkeypatch):
+    """The compile switch's choice on a GPU: Triton's kernels where they load, the eager path
+    where they do not, and the eager path whenever it is asked for (the oracle)."""
+    sys.path[:0] = [ROOT]
+    from recgs_addon.core.train import compiling
+
+    monkeypatch.setattr(compiling, "_triton_ready", lambda: True)
+    sw = compiling.CompileSwitch(None, device="cuda")
+    assert sw.state == "triton" and sw.compiled() == "triton"
+    assert compiling.CompileSwitch(False, device="cuda").compiled() is False
+    monkeypatch.setattr(compiling, "_triton_ready", lambda: False)
+    sw = compiling.CompileSwitch(None, device="cuda")
+    assert sw.compiled() is False and "Triton" in " ".join(sw.messages)
+
+
+if __name__ == "__main__":
+    print(json.dumps(_cases()))
