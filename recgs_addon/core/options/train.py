@@ -103,9 +103,10 @@ TRAIN_OPTIONS = OptionTable([
            setting=Setting("SH Degree", minimum=0, maximum=3)),
     Option("--seed", "Seed of the random generators", type=int, default=TrainConfig.seed,
            setting=Setting("Seed", minimum=0)),
-    Option("--device", "cpu, cuda or mps (where torch has them). A GPU trains the same model, on the "
-                       "plain-PyTorch path, which is about as fast as two CPU cores today: on a machine with "
-                       "more cores keep cpu", default=TrainConfig.device,
+    Option("--device", "cpu, cuda or mps (where torch has them). A GPU trains the same model. On an NVIDIA "
+                       "GPU with Triton (it comes with torch's CUDA builds) the compositing runs in fused GPU "
+                       "kernels; elsewhere, and on mps, the plain-PyTorch path, which is about as fast as two CPU "
+                       "cores: there, on a machine with more cores keep cpu", default=TrainConfig.device,
            setting=Setting("Device")),
     Option("--images", "Train on this image folder instead of images/: a name inside the scene (e.g. clean) or "
                        "a path; the same file names",

@@ -163,6 +163,14 @@ def use_numba_cache() -> Path:
     return Path(os.environ["NUMBA_CACHE_DIR"])
 
 
+def _triton_ready() -> bool:
+    """Whether Triton's GPU kernels load here (Triton installed, a CUDA device)."""
+    from ..render import triton_kernels
+    from ..render.chunks import ALPHA_MAX, T_MIN
+    from ..render.projection import ALPHA_MIN
+    return triton_kernels.available() and triton_kernels.load(ALPHA_MIN, ALPHA_MAX, T_MIN) is not None
+
+
 def numba_importable() -> bool:
     import importlib.util
     return importlib.util.find_spec("numba") is not None
@@ -224,7 +232,8 @@ class CompileSwitch:
 
     ``requested``: True = compiled now (waits for the compiler; raises if it fails), False =
     eager, None = automatic. ``log(message)`` hears each change of state. ``state`` is one of
-    ``eager``, ``unavailable``, ``warming``, ``compiled`` (torch.compile); ``numba`` is one of
+    ``eager``, ``unavailable``, ``warming``, ``compiled`` (torch.compile), ``triton`` (a CUDA
+    device with Triton's kernels); ``numba`` is one of
     ``None`` (not used), ``warming``, ``ready``, ``failed``. ``switched_at`` is the step
     (``note_step``) at which a faster path (compiled, or numba after its warm-up) took over,
     ``None`` if none did. ``stall`` accumulates the seconds spent loading a path mid-run (the
@@ -248,11 +257,16 @@ class CompileSwitch:
         elif requested is True:
             use_user_cache()
             self.state = "compiled"
+        elif str(device).startswith("cuda") and _triton_ready():
+            # the compositing in Triton's fused kernels; projection and colour eager on the GPU
+            self.state, self.reason = "triton", f"device {device}"
+            self._say(f"device {device}: training on Triton's GPU kernels")
         elif str(device) != "cpu":
             # numba's kernels are CPU code; the eager path runs on any torch device (the meta
             # device check in tests/test_device.py), torch.compile on a GPU only when asked for
             self.state, self.reason = "eager", f"device {device}"
-            self._say(f"device {device}: training on the eager path (numba's kernels run on the CPU only)")
+            self._say(f"device {device}: training on the eager path (numba's kernels run on the CPU only; "
+                      "Triton's GPU kernels need Triton and a CUDA device)")
         else:
             self._automatic(max_degree)
 
@@ -390,10 +404,12 @@ class CompileSwitch:
     def compiled(self):
         """The rasterizer path for the next render (``render(compiled=...)``): True = through
         torch.compile; ``"numba"`` = numba's kernels, where torch.compile is not (yet) used and
-        they are ready; else False = eager torch."""
+        they are ready; ``"triton"`` = Triton's kernels on a CUDA device; else False = eager torch."""
         self._poll()
         if self.state == "compiled":
             return True
+        if self.state == "triton":
+            return "triton"
         if self.state != "eager" and self.numba == "ready":
             return "numba"
         return False
