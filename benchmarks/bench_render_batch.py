@@ -1,7 +1,7 @@
 """The plain-PyTorch rasterizer's batching on a device: tile size and pairs per chunk.
 
     python benchmarks/bench_render_batch.py SCENE_DIR [--gaussians 50000] [--device cuda]
-        [--settings 4:18,16:18,16:22,16:24] [--repeats 5]
+        [--settings 4:18,16:18,16:22,16:24,triton] [--repeats 5]
 
 The plain-PyTorch path (the one a GPU takes) tiles the image and composites it in chunks of
 (pixel, Gaussian) pairs sized for a CPU's caches (tiles of 4 pixels, 2^18 pairs a chunk); on a
@@ -10,7 +10,9 @@ time. This renders one training view of a model built from the survey's sparse p
 degree 3) forward and backward at each setting (``TILE:LOG2_PAIRS``), each ended by the
 device's synchronisation, and prints the median milliseconds, the chunks, the peak device
 memory and the largest difference from the first setting's image and gradients (the settings
-must give the same numbers: the binning changes, not the maths).
+must give the same numbers: the binning changes, not the maths). The setting ``triton`` renders
+with the compositing in Triton's fused kernels (one launch forward, one backward), against the
+same first setting.
 """
 from __future__ import annotations
 
@@ -38,12 +40,13 @@ def _sync(device: torch.device) -> None:
         torch.mps.synchronize()
 
 
-def one(params, cam, device, tile: int, pairs: int):
-    """Image and gradients of one forward and backward at ``tile``, ``pairs``; and the render's stats."""
+def one(params, cam, device, tile: int, pairs: int, path=False):
+    """Image and gradients of one forward and backward at ``tile``, ``pairs`` on ``path``
+    (``render(compiled=...)``); and the render's stats."""
     leaves = {k: v.detach().clone().requires_grad_(True) for k, v in params.items()}
     viewmat, K = view_tensors(cam, device)
     out = render(leaves["means"], leaves["log_scales"], leaves["quats"], leaves["logit_opacities"], leaves["sh"],
-                 viewmat, K, cam.width, cam.height, sh_degree=3, tile_size=tile, chunk_pairs=pairs, compiled=False)
+                 viewmat, K, cam.width, cam.height, sh_degree=3, tile_size=tile, chunk_pairs=pairs, compiled=path)
     (out.rgb.square().mean() + out.alpha.mean()).backward()
     return out.rgb.detach(), {k: v.grad for k, v in leaves.items()}, out.stats
 
@@ -65,15 +68,17 @@ def main(argv=None) -> int:
     cam = load_scene(args.scene).cameras[0]
     base = None
     for spec in args.settings.split(","):
-        tile, log_pairs = (int(x) for x in spec.split(":"))
+        # TILE:LOG2_PAIRS on the plain-PyTorch path, or "triton": the compositing in Triton's kernels
+        path = "triton" if spec == "triton" else False
+        tile, log_pairs = (16, 0) if path else (int(x) for x in spec.split(":"))
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
-        one(params, cam, device, tile, 1 << log_pairs)   # warm-up
+        one(params, cam, device, tile, 1 << log_pairs, path)   # warm-up
         times = []
         for _ in range(args.repeats):
             _sync(device)
             t = time.perf_counter()
-            img, grads, stats = one(params, cam, device, tile, 1 << log_pairs)
+            img, grads, stats = one(params, cam, device, tile, 1 << log_pairs, path)
             _sync(device)
             times.append(time.perf_counter() - t)
         diff = 0.0
@@ -87,7 +92,8 @@ def main(argv=None) -> int:
                        + [float((grads[k] - base[1][k]).abs().max()) / max(scale, 1e-30) for k in grads])
         peak = (f", peak {torch.cuda.max_memory_allocated(device) / 2 ** 30:.2f} GiB" if device.type == "cuda"
                 else "")
-        print(f"tile {tile:2d}, 2^{log_pairs} pairs a chunk: {1000 * statistics.median(times):8.1f} ms forward and "
+        what = f"{stats['path']:>6}, tile {tile:2d}" + ("" if path else f", 2^{log_pairs} pairs a chunk")
+        print(f"{what}: {1000 * statistics.median(times):8.1f} ms forward and "
               f"backward, {stats['chunks']} chunks, {stats['pairs']:,} pairs{peak}; largest difference from the "
               f"first {diff:.2e}", flush=True)
     print(f"({args.gaussians:,} Gaussians, {cam.width}x{cam.height}, {args.device})")

@@ -144,13 +144,14 @@ def timed_device_steps(tr, steps: int) -> tuple[float, dict]:
 
 
 def device_row(args, n: int) -> None:
-    """One model size on ``args.device``: seconds per step on the plain-PyTorch path."""
+    """One model size on ``args.device``: seconds per step on the plain-PyTorch path, or with
+    the compositing in Triton's kernels (``--gpu-path triton``)."""
     g = model(args.scene, n)
     growing = dict(densify_from=10**9, densify_until=10**9 + 1) if args.densifying else dict(densify_until=0)
     if args.prune_weight is not None:
         growing["prune_weight"] = args.prune_weight
     cfg = preset("default", sh_degree=3, max_side=args.max_side, pyramid=(), budget=n, device=args.device,
-                 compiled=False, **growing)
+                 compiled=None if args.gpu_path == "triton" else False, **growing)
     tr = make_trainer(args.scene, cfg, gaussians=g)
     tr.sh_degree = 3
     tr.data.load_all()
@@ -159,7 +160,8 @@ def device_row(args, n: int) -> None:
     peak = ""
     if tr.device.type == "cuda":
         peak = f", peak GPU memory {torch.cuda.max_memory_allocated(tr.device) / 2**30:.2f} GiB"
-    print(f"\n{n:,} Gaussians at {w}x{h} on {args.device} (plain PyTorch): {total:.4f} s a step "
+    path = {"triton": "Triton's kernels"}.get(str(tr.compiler.compiled()), "plain PyTorch")
+    print(f"\n{n:,} Gaussians at {w}x{h} on {args.device} ({path}): {total:.4f} s a step "
           f"({1 / total:.1f} steps/s), Adam {parts['adam']:.4f} s, the rest {parts['rest']:.4f} s{peak}",
           flush=True)
 
@@ -179,6 +181,8 @@ def main(argv=None) -> int:
                     help="the strategy's prune_weight (0: no blending weights gathered)")
     ap.add_argument("--device", default="cpu",
                     help="cuda or mps: time the steps on that GPU (plain PyTorch) instead of numba's threads")
+    ap.add_argument("--gpu-path", choices=("eager", "triton"), default="eager",
+                    help="on a GPU: the plain-PyTorch path, or the compositing in Triton's kernels")
     args = ap.parse_args(argv)
     if args.device != "cpu":
         print(f"torch {torch.__version__}, device {args.device}"

@@ -10,13 +10,15 @@
 # their time:
 #   1. the machine: torch, CUDA, the GPU, the cores;
 #   2. a training step at 50k and 500k Gaussians and 1280x960 (the sample survey scaled up), on
-#      the CPU's cores (numba's path) and on the GPU: seconds a step and peak GPU memory
+#      the CPU's cores (numba's path), on the GPU's plain-PyTorch path and with the compositing
+#      in Triton's kernels (the trainer's choice there): seconds a step and peak GPU memory
 #      (bench_threads.py);
 #   3. one render's forward and backward on the GPU with the plain-PyTorch path's tiles and
-#      chunks as sized for a CPU, and larger (bench_render_batch.py: the kernel launches);
+#      chunks as sized for a CPU, and larger (bench_render_batch.py: the kernel launches), and
+#      with Triton's kernels: the time and the largest difference of image and gradients;
 #   4. the README's main job (the bundled dive survey, RecGS, two minutes) on the GPU and on
 #      the CPU, one after the other: steps, held-out PSNR against the ground truth, Gaussians,
-#      peak memory.
+#      peak memory (the GPU job on Triton's kernels where they load, as a user's would be).
 # The figures go to the benchmark record beside the 2-core machine's.
 set -u
 cd "$(dirname "$0")/.."
@@ -45,12 +47,16 @@ SAMPLE="$OUT/sample_1280"
     > "$OUT/scale.log" 2>&1 || echo "scaling the sample failed: see $OUT/scale.log"
 timeout 110 "$PY" benchmarks/bench_threads.py "$SAMPLE" --gaussians 50000,500000 --threads "$CORES" --steps 4 \
     --densifying 2>&1 | tee "$OUT/steps_cpu.txt" | tail -n 12
-timeout 110 "$PY" benchmarks/bench_threads.py "$SAMPLE" --gaussians 50000,500000 --steps 6 --densifying \
+timeout 90 "$PY" benchmarks/bench_threads.py "$SAMPLE" --gaussians 50000,500000 --steps 6 --densifying \
     --device cuda 2>&1 | tee "$OUT/steps_cuda.txt" | tail -n 12
+timeout 90 "$PY" benchmarks/bench_threads.py "$SAMPLE" --gaussians 50000,500000 --steps 6 --densifying \
+    --device cuda --gpu-path triton 2>&1 | tee "$OUT/steps_triton.txt" | tail -n 12
 
-say "the plain-PyTorch rasterizer's batching on the GPU (tile size : log2 pairs a chunk)"
+say "one render on the GPU: the plain-PyTorch path's batching (tile size : log2 pairs a chunk) and Triton's kernels"
 timeout 60 "$PY" benchmarks/bench_render_batch.py "$SAMPLE" --gaussians 50000 --device cuda \
-    --settings 4:18,16:18,16:22,16:24 --repeats 3 2>&1 | tee "$OUT/render_batch.txt" | tail -n 6
+    --settings 4:18,16:22,triton --repeats 3 2>&1 | tee "$OUT/render_batch.txt" | tail -n 6
+timeout 60 "$PY" benchmarks/bench_render_batch.py "$SAMPLE" --gaussians 500000 --device cuda \
+    --settings 16:22,triton --repeats 3 2>&1 | tee "$OUT/render_batch_500k.txt" | tail -n 4
 
 say "the README's job, two minutes, on the GPU and on the CPU"
 for dev in cuda cpu; do
