@@ -241,6 +241,33 @@ def test_sweep_scores_in_a_window_match_the_whole_frame():
     assert torch.allclose(part[:, 2:-2, 2:-2], full[:, win[0], win[1]][:, 2:-2, 2:-2], atol=1e-3)
 
 
+def test_sweep_scores_are_the_mean_correlation_with_each_neighbour_that_sees_the_point(monkeypatch):
+    """The batched scoring (every depth, every neighbour, three box filters in one call, split
+    into batches when large) equals scoring one depth and one neighbour at a time with
+    ``zncc``, where the warped point lands inside that neighbour."""
+    views, _ = survey(strength=0.9, rows=2, per_row=8)
+    i = 4
+    nbrs = G.sweep_neighbours(i, views, G.overlap_matrix(views))
+    greys = [G.log_grey(v.photo) for v in views]
+    depths = [views[i].surface * (1 + d) for d in (-0.02, -0.005, 0.0, 0.01, 0.03)]
+    pairs = [G._pair_rays(views[i], views[j]) for j in nbrs]
+    want = []
+    for z in depths:
+        num, cnt = torch.zeros(H, W), torch.zeros(H, W)
+        for (rays, e), j in zip(pairs, nbrs):
+            g, ok = G._pair_grid(rays, e, z.unsqueeze(0), views[j])
+            b = torch.nn.functional.grid_sample(greys[j][None, None], g, mode="bilinear", align_corners=False)[0]
+            num += G.zncc(greys[i].unsqueeze(0), b, 2)[0] * ok[0]
+            cnt += ok[0]
+        want.append(num / cnt.clamp_min(1))
+    want = torch.stack(want)
+    got = G._sweep_scores(i, views, nbrs, depths, 2, greys)
+    assert got.shape == want.shape and (want.abs() > 0.3).float().mean() > 0.5
+    assert torch.allclose(got, want, atol=1e-5), (got - want).abs().max()
+    monkeypatch.setattr(G, "SWEEP_BATCH", 1)           # one depth a batch
+    assert torch.allclose(G._sweep_scores(i, views, nbrs, depths, 2, greys), got, atol=1e-6)
+
+
 def test_pixels_without_a_surface_take_no_part_in_the_calibration():
     """Where no frame knows the surface (no points, no model), the photo's light cannot be
     compared with anything: those pixels neither calibrate the floor nor get an estimate."""

@@ -43,6 +43,9 @@ POINT_SUPPORT = 0.02
 #: (pixels).
 SWEEP = tuple(float(x) for x in np.linspace(-0.015, 0.015, 7))
 SWEEP_RADIUS = 2
+#: The most elements (depths x frames compared x pixels x 3) one batch of a sweep's scoring
+#: holds (32 MB of float32; its running sums take about four times that while they run).
+SWEEP_BATCH = 1 << 23
 #: ... the frames it compares with (most overlap times baseline) and the least correlation a
 #: pixel's best offset needs to count (others take their neighbours' offsets).
 SWEEP_FRAMES = 6
@@ -229,15 +232,16 @@ def _pair_rays(vi: PassView, vj: PassView) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _pair_grid(rays: torch.Tensor, e: torch.Tensor, z: torch.Tensor, vj: PassView) -> tuple[torch.Tensor, torch.Tensor]:
-    """(``grid_sample`` grid (1, H, W, 2), inside (H, W)) of points at depth ``z`` (``_pair_rays``)."""
-    x = rays * z + e[:, None, None]
+    """(``grid_sample`` grid (D, H, W, 2), inside (D, H, W)) of points at the depths ``z``
+    (D, H, W) (``_pair_rays``)."""
+    x = rays.unsqueeze(1) * z + e.view(3, 1, 1, 1)
     zj = x[2]
     zs = zj.clamp_min(1e-6)
     hh, ww = vj.surface.shape
     gx = 2 * (x[0] / zs) / ww - 1
     gy = 2 * (x[1] / zs) / hh - 1
-    grid = torch.stack([gx, gy], -1).unsqueeze(0)
-    return grid, inside(grid, hh, ww) & (zj > 1e-6)
+    ok = (gx.abs() <= 1 - 1 / ww) & (gy.abs() <= 1 - 1 / hh) & (zj > 1e-6)   # as consensus.inside
+    return torch.stack([gx, gy], -1), ok
 
 
 def points_depth(viewmat: torch.Tensor, K: torch.Tensor, height: int, width: int, points: torch.Tensor) -> torch.Tensor:
@@ -352,16 +356,27 @@ def _sweep_scores(i: int, views: Sequence[PassView], neighbours: Sequence[int], 
     pairs = pairs if pairs is not None else [_pair_rays(vi, views[j]) for j in neighbours]
     pairs = [(rays[:, window[0], window[1]], e) for rays, e in pairs]
     others = [greys[j].unsqueeze(0).unsqueeze(0) for j in neighbours]
+    n = len(neighbours)
+    # All depths' samples in one batch, up to SWEEP_BATCH elements (three box filters of it
+    # in one call: per call, the running sums' overhead outweighs their work at pass size).
+    step = max(1, SWEEP_BATCH // max(1, 3 * n * own[0].numel()))
     scores = []
-    for z in depths:
-        grids, oks = zip(*(_pair_grid(r, e, z, views[j]) for (r, e), j in zip(pairs, neighbours)))
-        b = torch.cat([F.grid_sample(o, g, mode="bilinear", align_corners=False)[0] for o, g in zip(others, grids)])
-        mb = box(b, radius)
-        vb = (box(b * b, radius) - mb * mb).clamp_min(0)
-        c = (box(own * b, radius) - ma * mb) / torch.sqrt(va * vb + 1e-8)
-        ok = torch.stack(oks)
-        scores.append((c * ok).sum(0) / ok.sum(0).clamp_min(1))
-    return torch.stack(scores)
+    for k in range(0, len(depths), step):
+        z = torch.stack(list(depths[k:k + step]))
+        d = z.shape[0]
+        bs, oks = [], []
+        for (r, e), j, o in zip(pairs, neighbours, others):
+            g, ok = _pair_grid(r, e, z, views[j])
+            bs.append(F.grid_sample(o.expand(d, -1, -1, -1), g, mode="bilinear", align_corners=False)[:, 0])
+            oks.append(ok)
+        b = torch.stack(bs, 1)                               # (d, n, H, W)
+        m = box(torch.cat([b, b * b, own * b]).flatten(0, 1), radius).view(3, d, n, *b.shape[2:])
+        mb, mbb, mab = m[0], m[1], m[2]
+        vb = (mbb - mb * mb).clamp_min(0)
+        c = (mab - ma * mb) / torch.sqrt(va * vb + 1e-8)
+        ok = torch.stack(oks, 1)
+        scores.append((c * ok).sum(1) / ok.sum(1).clamp_min(1))
+    return torch.cat(scores)
 
 
 def _best_offset(s: torch.Tensor, offsets) -> tuple[torch.Tensor, torch.Tensor]:
