@@ -1,5 +1,5 @@
-"""The GPU path's fused compositing kernels (core/render/triton_kernels.py) against the eager
-torch oracle, run in Triton's interpreter (no GPU needed): images, radii, every gradient and
+"""The GPU path's kernels (core/render/triton_kernels.py: projection + SH colour and
+compositing) against the eager torch oracle, run in Triton's interpreter (no GPU needed): images, radii, every gradient and
 the blending weights, on the scenes that break rasterizers (the clamp and the stop on dense
 stacks, one pixel under thousands of Gaussians, empty tiles, frames not a multiple of the
 tile). Triton fixes interpreter or compiler when it is first imported, so the cases run in
@@ -56,7 +56,7 @@ def _cases():
         return _errors(a, pa, b, pb, tr.PARAM_NAMES)
 
     res = {}
-    for seed, deg, aa in [(0, 3, False), (1, 0, True), (2, 1, False)]:
+    for seed, deg, aa in [(0, 3, False), (1, 0, True), (2, 1, False), (4, 2, True)]:
         res[f"random-{seed}"] = compare(tr.make_scene(seed, n=60, deg=deg), antialiased=aa)
     res["dense"] = compare(tr.make_scene(8, n=150, width=36, height=20, logit=(3.0, 2.0)))
     res["odd-frame"] = compare(tr.make_scene(3, n=80, width=37, height=29, logit=(2.0, 2.0)))
@@ -110,7 +110,7 @@ def _assert_matches(r):
 
 
 @needs_triton
-@pytest.mark.parametrize("case", ["random-0", "random-1", "random-2", "odd-frame"])
+@pytest.mark.parametrize("case", ["random-0", "random-1", "random-2", "random-4", "odd-frame"])
 def test_triton_matches_eager(results, case):
     """Random scenes (SH 0-3, antialiased or not), a frame not a multiple of the 16-px tile."""
     _assert_matches(results[case])
@@ -181,6 +181,55 @@ def test_a_cuda_device_trains_on_the_triton_path_where_it_loads(monkeypatch):
     monkeypatch.setattr(compiling, "_triton_ready", lambda: False)
     sw = compiling.CompileSwitch(None, device="cuda")
     assert sw.compiled() is False and "Triton" in " ".join(sw.messages)
+
+
+# ------------------------------------------------------------------------------ the compiler
+
+_P = "*fp32"
+_PROJECT_SIG = dict(means=_P, log_scales=_P, quats=_P, logits=_P, sh=_P, vm="*fp64", kk="*fp64",
+                    campos="*fp64", shc="*fp64", cst="*fp64")
+_COMPOSITE_SIG = dict(tile_start="*i64", rows="*i32", pos="*fp64", geo=_P, vals=_P, out=_P, last="*i32")
+_SCALARS = dict(tiles_x="i32", hp="i32", wp="i32", amin="fp32", amax="fp32", tmin="fp32")
+
+
+def _compile_cases():
+    from recgs_addon.core.render import _triton_project as tp
+    from recgs_addon.core.render import triton_kernels as tk
+    proj_out = dict(pos="*fp64", geo=_P, depth=_P, colour=_P)
+    proj_grads = dict(g_pos=_P, g_geo=_P, g_depth=_P, g_colour=_P, d_means=_P, d_log_scales=_P, d_quats=_P,
+                      d_logits=_P, d_sh=_P)
+    sizes = dict(V="i32", width="i32", height="i32")
+    for deg, aa in [(0, True), (3, False)]:
+        ce = dict(KS=16, DEG=deg, AA=aa, BLOCK=tk._PROJECT_BLOCK)
+        yield f"project-forward-{deg}", tp._forward_kernel, {**_PROJECT_SIG, **proj_out, **sizes}, ce
+        yield f"project-backward-{deg}", tp._backward_kernel, {**_PROJECT_SIG, **proj_grads, **sizes}, ce
+    yield "composite-forward", tk.triton.jit(tk._forward_kernel), {**_COMPOSITE_SIG, **_SCALARS}, \
+        dict(TS=16, C=5, CB=8)
+    yield "composite-backward", tk.triton.jit(tk._backward_kernel), \
+        {**_COMPOSITE_SIG, "g_out": _P, "d_isect": _P, "n_isect": "i32", **_SCALARS}, \
+        dict(TS=16, C=5, CB=8, WEIGHTS=True)
+
+
+@needs_triton
+def test_the_kernels_compile_for_nvidia_gpus():
+    """Every kernel compiles to machine code for a Turing (GeForce RTX 20, the oldest with
+    Triton's support) and a Hopper GPU, with Triton's own ptxas, on a machine without one: what
+    the interpreter cannot check (typing, the compiler's limits) is checked here."""
+    from recgs_addon.core.render import triton_kernels as tk
+    if tk.interpreting():
+        pytest.skip("this process runs Triton's interpreter")
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+    done = []
+    for arch in (75, 90):
+        for name, fn, sig, ce in _compile_cases():
+            for k in ce:
+                sig[k] = "constexpr"
+            kernel = tk.triton.compile(ASTSource(fn=fn, signature=sig, constexprs=ce),
+                                       target=GPUTarget("cuda", arch, 32))
+            assert kernel.asm["cubin"], (name, arch)
+            done.append((name, arch))
+    assert len(done) == 12
 
 
 if __name__ == "__main__":

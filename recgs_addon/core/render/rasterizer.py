@@ -46,7 +46,7 @@ from .kernels import _KERNEL_CACHE, _Kernels, _compiled_kernels, _sh_fn, _smoke_
 from .numba_path import _CompositeNumba, _ProjectNumba
 from .projection import ALPHA_MIN, _index_rows, camera_centre, project_gaussians
 from .tiles import _Plan, _build_plan, _flat_plan
-from .triton_path import _CompositeTriton
+from .triton_path import _CompositeTriton, _ProjectTriton
 
 #: Default near plane (scene units), INRIA.
 DEFAULT_NEAR = 0.2
@@ -102,7 +102,7 @@ def get_kernels(compiled: Optional[bool]) -> _Kernels:
     """The per-pair kernels: eager (``compiled=False``), ``torch.compile``d (``True``, raises
     if compilation fails), compiled-if-possible (``None``, warns once and falls back) or
     numba's (``"numba"``: no C++ compiler needed; the rest of the render runs eagerly) or the
-    eager ones marked for Triton's compositing (``"triton"``: :func:`_triton_kernels` loads
+    eager ones marked for Triton's GPU kernels (``"triton"``: :func:`_triton_kernels` loads
     them in the render, for its device)."""
     if compiled is False:
         return _Kernels(_chunk_forward, _chunk_backward, False)
@@ -192,6 +192,40 @@ def _render_numba(nk, means, log_scales, quats, logit_opacities, blocks, viewmat
                         radii=torch.from_numpy(radii), stats=stats)
 
 
+def _render_triton(tk, means, log_scales, quats, logit_opacities, blocks, viewmat, K, width: int,
+                   height: int, sh_degree: int, background, antialiased: bool, near: float,
+                   gather, weights) -> RenderOutput:
+    """:func:`render` on the GPU path (float32 inputs on a CUDA device, or CPU tensors in
+    Triton's interpreter): culling, depth order and binning as the eager path's torch operations
+    without autograd, then two differentiable Triton kernels, projection + colour and
+    compositing (one launch each way). Same outputs as the eager path to float32 rounding
+    (tests/test_triton_kernels.py)."""
+    n = means.shape[0]
+    f64 = torch.float64
+    params = (means, log_scales, quats, logit_opacities)
+    proj = project_gaussians(*params, viewmat, K, width, height, near=near, antialiased=antialiased,
+                             rows=False)
+    ids = proj.ids
+    vm = viewmat.detach().to(device=means.device, dtype=f64)
+    view = tk.view_arrays(vm, K.detach().to(device=means.device, dtype=f64), camera_centre(vm), near)
+    sh_vis = torch.cat([gather(b, ids) for b in blocks if b.shape[1]], 1)
+    m2d, geo, depth, colour, pos64 = _ProjectTriton.apply(
+        *(gather(x, ids) for x in params), sh_vis, (tk, sh_degree, view, width, height, antialiased))
+    values = torch.cat([colour, depth.unsqueeze(1), torch.ones(ids.shape[0], 1, device=means.device)], dim=1)
+    means2d = torch.zeros(n, 2, device=means.device).index_copy(0, ids, m2d)
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    plan = _flat_plan(proj, width, height, TRITON_TILE_SIZE)
+    plan.weights = weights
+    acc = _CompositeTriton.apply(means2d, geo[:, :3], geo[:, 3], values, pos64, ids, plan, tk)
+    alpha = acc[..., 4]
+    rgb = acc[..., 0:3] + (1.0 - alpha).unsqueeze(-1) * background
+    stats = dict(visible=int(ids.shape[0]), intersections=plan.intersections, pairs=plan.pairs,
+                 chunks=0, compiled=False, path="triton")
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=acc[..., 3], means2d=means2d,
+                        radii=proj.radii, stats=stats)
+
+
 # ----------------------------------------------------------------------------------------
 # Public entry point
 # ----------------------------------------------------------------------------------------
@@ -229,9 +263,10 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
         tile_size: tile edge in pixels (binning granularity; results do not depend on it).
         compiled: run the per-pair maths through ``torch.compile`` (True), eagerly (False)
             or compiled when a compiler works, else eagerly with a warning (None); ``"numba"``:
-            numba's kernels (CPU, float32); ``"triton"``: the compositing in Triton's fused
-            kernels (a CUDA device, float32; CPU tensors only in Triton's interpreter), in
-            16x16 tiles whatever ``tile_size``, projection and colour eager on the device.
+            numba's kernels (CPU, float32); ``"triton"``: projection, colour and compositing in
+            Triton's fused kernels (a CUDA device, float32; CPU tensors only in Triton's
+            interpreter), in 16x16 tiles whatever ``tile_size``; culling and binning as torch
+            operations on the device.
         chunk_pairs: (pixel, Gaussian) pairs per chunk (working-set size).
         low_memory: keep no per-pair state between forward and backward (the backward
             replays the forward chunk by chunk): about 8 bytes less per pair, ~1/3 slower.
@@ -272,6 +307,15 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
             numba_kernels.disable(exc)
             warnings.warn(f"numba kernels failed ({exc!r}); using the eager rasterizer")
             kern = get_kernels(False)
+    # float32 renders (float64 ones stay eager, as on numba's path: the kernels are float32)
+    tk = None
+    if kern.triton and all(x.dtype == torch.float32 for x in (means, log_scales, quats, logit_opacities)):
+        tk = _triton_kernels(means.device)
+    if tk is not None:
+        if not near > 0:
+            raise ValueError(f"near must be > 0, got {near}")
+        return _render_triton(tk, means, log_scales, quats, logit_opacities, blocks, viewmat, K, width,
+                              height, sh_degree, background, antialiased, near, gather, weights)
     proj = project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K,
                              width, height, near=near, antialiased=antialiased,
                              compiled=kern.compiled, gather=gather)
@@ -289,22 +333,14 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
     if means2d.requires_grad:
         means2d.retain_grad()
 
-    # float32 renders (float64 ones stay eager, as on numba's path: the kernels are float32)
-    tk = _triton_kernels(means.device) if kern.triton and dtype == torch.float32 else None
-    if tk is not None:
-        plan = _flat_plan(proj, width, height, TRITON_TILE_SIZE)
-        plan.weights = weights
-        acc = _CompositeTriton.apply(means2d, proj.chol.to(dtype), proj.opacity.to(dtype), values,
-                                     proj.means2d.detach(), ids, plan, tk)
-    else:
-        plan = _build_plan(proj, width, height, tile_size, chunk_pairs, kern.compiled)
-        plan.weights = weights
-        acc = _Composite.apply(means2d, proj.chol.to(dtype), proj.opacity.to(dtype), values,
-                               proj.means2d.detach(), ids, plan, kern, low_memory)
+    plan = _build_plan(proj, width, height, tile_size, chunk_pairs, kern.compiled)
+    plan.weights = weights
+    acc = _Composite.apply(means2d, proj.chol.to(dtype), proj.opacity.to(dtype), values,
+                           proj.means2d.detach(), ids, plan, kern, low_memory)
     alpha = acc[..., 4]
     rgb = acc[..., 0:3] + (1.0 - alpha).unsqueeze(-1) * background
     stats = dict(visible=int(ids.shape[0]), intersections=plan.intersections,
                  pairs=plan.pairs, chunks=len(plan.chunks), compiled=kern.compiled,
-                 path="triton" if tk is not None else "compiled" if kern.compiled else "eager")
+                 path="compiled" if kern.compiled else "eager")
     return RenderOutput(rgb=rgb, alpha=alpha, depth=acc[..., 3], means2d=means2d,
                         radii=proj.radii, stats=stats)

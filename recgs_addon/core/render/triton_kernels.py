@@ -25,6 +25,8 @@ from typing import Optional
 
 import torch
 
+# fused multiply-adds in the kernels (Triton's default so far; saying so silences its warning)
+os.environ.setdefault("TRITON_DEFAULT_FP_FUSION", "1")
 try:  # Triton: with CUDA builds of torch; on a CPU-only machine only for its interpreter
     import triton
     import triton.language as tl
@@ -37,6 +39,8 @@ _STATE: dict = {}
 #: Values a Gaussian carries into the compositing at most (rgb, depth, 1 and spares): the
 #: channel axis of a program's accumulator is padded to a power of two.
 _MAX_VALUES = 8
+#: Gaussians a program of the per-Gaussian kernels takes (lanes).
+_PROJECT_BLOCK = 128
 
 
 def _forward_kernel(tile_start, rows, pos, geo, vals, out, last, tiles_x, hp, wp, amin, amax, tmin,
@@ -169,10 +173,56 @@ class TritonKernels:
     """The two compiled (or interpreted) kernels and their launches."""
 
     def __init__(self, amin: float, amax: float, tmin: float):
+        from . import _triton_project
+        from . import projection as pj
+        from ..model import gaussians as gs
         self._fwd = triton.jit(_forward_kernel)
         self._bwd = triton.jit(_backward_kernel)
+        self._proj_fwd = _triton_project._forward_kernel
+        self._proj_bwd = _triton_project._backward_kernel
         self.interpret = interpreting()
         self.amin, self.amax, self.tmin = float(amin), float(amax), float(tmin)
+        # what the per-Gaussian kernels read from ``cst`` (numba's order; near is set per call)
+        self._proj_consts = [0.0, pj.COV2D_DILATION, pj.FRUSTUM_CLAMP, pj.ALPHA_MIN, pj.QUAT_EPS ** 2,
+                             pj.AA_RATIO_EPS, pj.BIN_MARGIN_REL, pj.BIN_MARGIN_ABS, pj.MAX_RADIUS]
+        self._shc = [gs.SH_C0, gs.SH_C1, *gs.SH_C2, *gs.SH_C3]
+
+    def view_arrays(self, vm, K, campos, near: float) -> tuple:
+        """The view's float64 arrays on the device the kernels read (viewmat, K, camera centre,
+        SH constants, projection constants)."""
+        dev = vm.device
+        f64 = torch.float64
+        cst = torch.tensor([float(near)] + self._proj_consts[1:], dtype=f64, device=dev)
+        return (vm.detach().to(f64).contiguous(), K.detach().to(f64).contiguous(),
+                campos.detach().to(f64).contiguous(), torch.tensor(self._shc, dtype=f64, device=dev), cst)
+
+    def project_forward(self, rows, deg: int, view: tuple, width: int, height: int, antialiased: bool):
+        """Projection and colour of the visible rows (means (V, 3), log_scales (V, 3), quats
+        (V, 4), logits (V,), sh (V, K, 3), float32 contiguous): (pos (V, 2) float64, geo (V, 4)
+        l11, l21, l22, opacity, depth (V,), colour (V, 3)) float32."""
+        means, sh = rows[0], rows[4]
+        v, dev = means.shape[0], means.device
+        pos = torch.empty(v, 2, dtype=torch.float64, device=dev)
+        geo = torch.empty(v, 4, dtype=torch.float32, device=dev)
+        depth = torch.empty(v, dtype=torch.float32, device=dev)
+        colour = torch.empty(v, 3, dtype=torch.float32, device=dev)
+        if v:
+            self._proj_fwd[(-(-v // _PROJECT_BLOCK),)](*rows, *view, pos, geo, depth, colour, v, width, height,
+                                                       KS=sh.shape[1], DEG=int(deg), AA=bool(antialiased),
+                                                       BLOCK=_PROJECT_BLOCK)
+        return pos, geo, depth, colour
+
+    def project_backward(self, rows, deg: int, view: tuple, width: int, height: int, antialiased: bool,
+                         g_pos, g_geo, g_depth, g_colour):
+        """Gradients of :meth:`project_forward`'s outputs back to the rows (float32, their shapes)."""
+        means, sh = rows[0], rows[4]
+        v = means.shape[0]
+        grads = tuple(torch.zeros_like(x) for x in rows)
+        if v:
+            self._proj_bwd[(-(-v // _PROJECT_BLOCK),)](*rows, *view, g_pos, g_geo, g_depth, g_colour, *grads,
+                                                       v, width, height, KS=sh.shape[1], DEG=int(deg),
+                                                       AA=bool(antialiased), BLOCK=_PROJECT_BLOCK)
+        return grads
 
     def forward(self, tile_start, rows, pos, geo, vals, ts: int, tiles_x: int, tiles_y: int):
         """(out (C, Hp, Wp) float32, last (Hp, Wp) int32) of every tile. ``pos`` (V, 2)

@@ -1,12 +1,48 @@
-"""The autograd Function of the GPU path: compositing over every tile through Triton's
-kernels (:mod:`.triton_kernels`), one launch forward and one backward. Projection, colour
-and binning before it are the eager path's torch operations, on the same device;
-:func:`.rasterizer.render` runs a view through them."""
+"""The autograd Functions of the GPU path, each one launch of Triton's kernels
+(:mod:`.triton_kernels`) forward and one backward: projection + SH colour of the visible
+Gaussians (:class:`_ProjectTriton`) and compositing over every tile (:class:`_CompositeTriton`).
+Culling and binning before them are the eager path's torch operations without autograd, on the
+same device; :func:`.rasterizer._render_triton` runs a view through them."""
 from __future__ import annotations
 
 import torch
 
 from .tiles import _N_GEOM
+
+
+class _ProjectTriton(torch.autograd.Function):
+    """Projection and colour of the visible Gaussians through Triton's kernels (float32 rows,
+    float64 maths, hand-written backward): the twin of numba's :class:`.numba_path._ProjectNumba`.
+    Inputs: the visible rows of means, log_scales, quats, logit_opacities, sh (V, K, 3), and
+    ``setup`` = (kernels, SH degree, :meth:`.triton_kernels.TritonKernels.view_arrays`, width,
+    height, antialiased). Outputs: means2d (V, 2) float32, geo (V, 4) (l11, l21, l22,
+    opacity), depth (V,), colour (V, 3), and pos (V, 2) float64 (the centres compositing uses;
+    no gradient)."""
+
+    @staticmethod
+    def forward(ctx, means, log_scales, quats, logits, sh, setup):
+        rows = tuple(x.detach().to(torch.float32).contiguous() for x in (means, log_scales, quats, logits, sh))
+        tk, deg, view, width, height, aa = setup
+        pos, geo, depth, colour = tk.project_forward(rows, deg, view, width, height, aa)
+        ctx.rows, ctx.setup = rows, setup
+        ctx.mark_non_differentiable(pos)
+        return pos.to(torch.float32), geo, depth, colour, pos
+
+    @staticmethod
+    def backward(ctx, g_m2d, g_geo, g_depth, g_colour, _g_pos):
+        tk, deg, view, width, height, aa = ctx.setup
+        rows = ctx.rows
+        v, dev = rows[0].shape[0], rows[0].device
+
+        def arr(g, *shape):
+            if g is None:
+                return torch.zeros(*shape, dtype=torch.float32, device=dev)
+            return g.detach().to(torch.float32).contiguous()
+
+        grads = tk.project_backward(rows, deg, view, width, height, aa, arr(g_m2d, v, 2), arr(g_geo, v, 4),
+                                    arr(g_depth, v), arr(g_colour, v, 3))
+        ctx.rows = None
+        return tuple(grads) + (None,)
 
 
 class _CompositeTriton(torch.autograd.Function):
