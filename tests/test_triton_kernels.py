@@ -73,6 +73,29 @@ def _cases():
     b, _ = tr.run(s, torch.float32, compiled="triton")
     res["empty-tiles"]["corner_alpha"] = float(b.alpha[-6:, -6:].abs().max())
     res["float64"] = {"path": tr.run(tr.make_scene(0, n=20), torch.float64, compiled="triton")[0].stats["path"]}
+    # the culling kernel against the eager projection: the same Gaussians in the same order,
+    # the same pixel ranges, the same covariances and extents (float64)
+    from recgs_addon.core.render import rasterizer as rz
+    from recgs_addon.core.render.projection import camera_centre, project_gaussians
+    cull = {}
+    for name, sc in [("random-0", tr.make_scene(0, n=60, deg=3)), ("off-screen", tr._rounded(s))]:
+        for aa in (False, True):
+            params = tr.torch_params(sc, torch.float32, False)
+            vm = torch.tensor(sc["viewmat"], dtype=torch.float64)
+            K = torch.tensor(sc["K"], dtype=torch.float64)
+            ref = project_gaussians(*params[:4], vm, K, sc["width"], sc["height"], antialiased=aa)
+            tk = rz._triton_kernels(params[0].device)
+            info = tk.cull(tuple(x.contiguous() for x in params[:4]), tk.view_arrays(vm, K, camera_centre(vm), 0.2),
+                           sc["width"], sc["height"], aa)
+            ok = info[:, 0] > 0
+            same = bool(torch.equal(torch.nonzero(ok).squeeze(1), torch.sort(ref.ids).values))
+            got = info[ref.ids] if same else info[:0]
+            cull[f"{name}-{int(aa)}"] = {
+                "same_ids": same, "visible": int(ok.sum()), "culled": int((~ok).sum()),
+                "bbox_equal": same and bool(torch.equal(got[:, 9:13].long(), ref.bbox)),
+                "cov2d": float((got[:, 4:8] - ref.cov2d).abs().max() / ref.cov2d.abs().max()) if same else 1.0,
+                "extent": float((got[:, 8] - ref.extent).abs().max()) if same else 1.0}
+    res["cull"] = cull
     # blending weights: against the eager path's, and their sum is the image's alpha
     scene = tr.make_scene(8, n=150, width=36, height=20, logit=(3.0, 2.0))
     a, _, wa = tr._weights_of(scene, torch.float32, compiled=False)
@@ -134,6 +157,16 @@ def test_triton_matches_eager_with_off_screen_and_empty_tiles(results):
     _assert_matches(results["off-screen"])
     _assert_matches(results["empty-tiles"])
     assert results["empty-tiles"]["corner_alpha"] == 0.0
+
+
+@needs_triton
+def test_the_culling_kernel_keeps_what_the_eager_projection_keeps(results):
+    """The same Gaussians drawn (behind the camera, far off-screen and covering the image
+    among them), the same pixel ranges, the covariances and extents to float64 rounding."""
+    for case, r in results["cull"].items():
+        assert r["same_ids"] and r["bbox_equal"], (case, r)
+        assert r["visible"] > 0 and r["cov2d"] <= 1e-12 and r["extent"] <= 1e-12, (case, r)
+    assert results["cull"]["off-screen-0"]["culled"] >= 2
 
 
 @needs_triton
@@ -203,6 +236,9 @@ def _compile_cases():
         ce = dict(KS=16, DEG=deg, AA=aa, BLOCK=tk._PROJECT_BLOCK)
         yield f"project-forward-{deg}", tp._forward_kernel, {**_PROJECT_SIG, **proj_out, **sizes}, ce
         yield f"project-backward-{deg}", tp._backward_kernel, {**_PROJECT_SIG, **proj_grads, **sizes}, ce
+    yield "cull", tp._cull_kernel, dict(means=_P, log_scales=_P, quats=_P, logits=_P, vm="*fp64", kk="*fp64",
+                                         cst="*fp64", info="*fp64", N="i32", width="i32", height="i32"), \
+        dict(AA=True, BLOCK=tk._PROJECT_BLOCK)
     yield "composite-forward", tk.triton.jit(tk._forward_kernel), {**_COMPOSITE_SIG, **_SCALARS}, \
         dict(TS=16, C=5, CB=8)
     yield "composite-backward", tk.triton.jit(tk._backward_kernel), \
@@ -229,7 +265,7 @@ def test_the_kernels_compile_for_nvidia_gpus():
                                        target=GPUTarget("cuda", arch, 32))
             assert kernel.asm["cubin"], (name, arch)
             done.append((name, arch))
-    assert len(done) == 12
+    assert len(done) == 14
 
 
 if __name__ == "__main__":

@@ -529,3 +529,95 @@ def _backward_kernel(means, log_scales, quats, logits, sh, vm, kk, campos, shc, 
     tl.store(d_means + 3 * i, gm0.to(tl.float32), mask=m)
     tl.store(d_means + 3 * i + 1, gm1.to(tl.float32), mask=m)
     tl.store(d_means + 3 * i + 2, gm2.to(tl.float32), mask=m)
+
+
+@_jit
+def _cull_kernel(means, log_scales, quats, logits, vm, kk, cst, info, N, width, height,
+                 AA: tl.constexpr, BLOCK: tl.constexpr):
+    """No-grad pass over every Gaussian (projection.py's ``_candidates`` + ``_cull_rows``, as
+    numba's ``cull``): ``info`` (N, 14) float64 ok (1 = drawn), z, u, v, A, B, C (dilated 2D
+    covariance), D (its determinant), extent, x0, x1, y0, y1 (inclusive pixel range in the
+    image), radius; only column 0 is meaningful where it is 0."""
+    i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    m = i < N
+    v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23, fx, fy, cx, cy, limx, limy = _setup(
+        vm, kk, cst, width, height)
+    near = tl.load(cst + 0)
+    dil = tl.load(cst + 1)
+    amin = tl.load(cst + 3)
+    mrel = tl.load(cst + 6)
+    mabs = tl.load(cst + 7)
+    maxr = tl.load(cst + 8)
+    m0 = _f64(means, 3 * i, m)
+    m1 = _f64(means, 3 * i + 1, m)
+    m2 = _f64(means, 3 * i + 2, m)
+    x = m0 * v00 + m1 * v01 + m2 * v02 + v03
+    y = m0 * v10 + m1 * v11 + m2 * v12 + v13
+    z = m0 * v20 + m1 * v21 + m2 * v22 + v23
+    front = m & (z > near)
+    z = tl.where(front, z, 1.0)
+    inv_z = 1.0 / z
+    u = fx * x * inv_z + cx
+    v = fy * y * inv_z + cy
+    xz = tl.minimum(tl.maximum(x * inv_z, -limx), limx)
+    yz = tl.minimum(tl.maximum(y * inv_z, -limy), limy)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22, qw, qx, qy, qz, rn = _rotation(quats, i, m, tl.load(cst + 4))
+    s0 = tl.exp(_f64(log_scales, 3 * i, m))
+    s1 = tl.exp(_f64(log_scales, 3 * i + 1, m))
+    s2 = tl.exp(_f64(log_scales, 3 * i + 2, m))
+    fi0 = fx * inv_z
+    fi1 = fy * inv_z
+    t00 = fi0 * (v00 - xz * v20)
+    t01 = fi0 * (v01 - xz * v21)
+    t02 = fi0 * (v02 - xz * v22)
+    t10 = fi1 * (v10 - yz * v20)
+    t11 = fi1 * (v11 - yz * v21)
+    t12 = fi1 * (v12 - yz * v22)
+    a0 = (t00 * r00 + t01 * r10 + t02 * r20) * s0
+    a1 = (t00 * r01 + t01 * r11 + t02 * r21) * s1
+    a2 = (t00 * r02 + t01 * r12 + t02 * r22) * s2
+    b0 = (t10 * r00 + t11 * r10 + t12 * r20) * s0
+    b1 = (t10 * r01 + t11 * r11 + t12 * r21) * s1
+    b2 = (t10 * r02 + t11 * r12 + t12 * r22) * s2
+    B = a0 * b0 + a1 * b1 + a2 * b2
+    C = b0 * b0 + b1 * b1 + b2 * b2
+    A = a0 * a0 + a1 * a1 + a2 * a2
+    c0 = a1 * b2 - a2 * b1
+    c1 = a2 * b0 - a0 * b2
+    c2 = a0 * b1 - a1 * b0
+    det0 = c0 * c0 + c1 * c1 + c2 * c2
+    det = det0 + dil * (A + C) + dil * dil
+    o = 1.0 / (1.0 + tl.exp(-_f64(logits, i, m)))
+    if AA:
+        o = o * tl.sqrt(tl.maximum(det0 / det, tl.load(cst + 5)))
+    Ad = A + dil
+    Cd = C + dil
+    lt = tl.maximum(tl.log(tl.maximum(o, amin) / amin), 0.0)
+    ext = (2.0 * lt) * (1.0 + 2.0 * mrel) + mabs
+    half_diff = 0.5 * (Ad - Cd)
+    lam_max = 0.5 * (Ad + Cd) + tl.sqrt(half_diff * half_diff + B * B)
+    r = tl.sqrt(2.0 * lt) * tl.sqrt(lam_max)
+    rb = tl.sqrt(ext * lam_max)
+    x0 = tl.math.ceil(u - rb - 0.5)
+    x1 = tl.math.floor(u + rb - 0.5)
+    y0 = tl.math.ceil(v - rb - 0.5)
+    y1 = tl.math.floor(v + rb - 0.5)
+    w1 = width - 1.0
+    h1 = height - 1.0
+    ok = front & (o >= amin) & (x1 >= 0) & (x0 <= w1) & (y1 >= 0) & (y0 <= h1)
+    ok = ok & (tl.abs(u) < float("inf")) & (tl.abs(v) < float("inf")) & (tl.abs(r) < float("inf"))
+    row = info + 14 * i
+    tl.store(row, tl.where(ok, 1.0, 0.0), mask=m)
+    tl.store(row + 1, z, mask=ok)
+    tl.store(row + 2, u, mask=ok)
+    tl.store(row + 3, v, mask=ok)
+    tl.store(row + 4, Ad, mask=ok)
+    tl.store(row + 5, B, mask=ok)
+    tl.store(row + 6, Cd, mask=ok)
+    tl.store(row + 7, det, mask=ok)
+    tl.store(row + 8, ext, mask=ok)
+    tl.store(row + 9, tl.minimum(tl.maximum(x0, 0.0), w1), mask=ok)
+    tl.store(row + 10, tl.minimum(tl.maximum(x1, 0.0), w1), mask=ok)
+    tl.store(row + 11, tl.minimum(tl.maximum(y0, 0.0), h1), mask=ok)
+    tl.store(row + 12, tl.minimum(tl.maximum(y1, 0.0), h1), mask=ok)
+    tl.store(row + 13, tl.minimum(tl.maximum(r, 0.0), maxr), mask=ok)

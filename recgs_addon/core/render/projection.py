@@ -258,7 +258,7 @@ def _maybe_compiled(fn, compiled: bool):
 
 
 def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, width, height,
-                      near=0.2, antialiased=False, compiled=False, gather=None, rows=True) -> Projection:
+                      near=0.2, antialiased=False, compiled=False, gather=None) -> Projection:
     """Cull, project and depth-sort Gaussians (see :class:`Projection` for the outputs).
 
     Args:
@@ -274,9 +274,6 @@ def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, wid
         compiled: run the per-Gaussian maths through torch.compile (same results to ~1e-15).
         gather: ``gather(x, ids)`` reads the visible rows of each input for the differentiable
             pass (default ``x.index_select(0, ids)``); see :mod:`recgs_addon.core.render.rowgrads`.
-        rows: run the differentiable pass; without it (the GPU path's kernels project the rows
-            themselves) ``means2d`` is the culling pass's (detached) and ``chol``, ``opacity``
-            and ``depth`` are None.
 
     Culling (radius 0): z <= near; opacity < 1/255; no pixel centre of the image within the
     opacity-aware radius ``ceil(sqrt(2 ln(255 o)) sqrt(lambda_max))``, beyond which
@@ -303,9 +300,6 @@ def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, wid
         info = info.index_select(0, vis)
         ids = cand.index_select(0, vis)
 
-    if not rows:
-        return Projection(ids=ids, means2d=info[:, 2:4], chol=None, opacity=None, depth=None, radii=radii,
-                          bbox=info[:, 9:13].to(torch.int64), cov2d=info[:, 4:8], extent=info[:, 8])
     if gather is None:
         gather = _index_rows
     q = _maybe_compiled(_project_rows, compiled)(

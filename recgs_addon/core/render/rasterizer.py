@@ -44,7 +44,7 @@ from .chunks import ALPHA_MAX, T_MIN, _chunk_backward, _chunk_forward
 from .composite import _Composite
 from .kernels import _KERNEL_CACHE, _Kernels, _compiled_kernels, _sh_fn, _smoke_test
 from .numba_path import _CompositeNumba, _ProjectNumba
-from .projection import ALPHA_MIN, _index_rows, camera_centre, project_gaussians
+from .projection import ALPHA_MIN, Projection, _index_rows, camera_centre, project_gaussians
 from .tiles import _Plan, _build_plan, _flat_plan
 from .triton_path import _CompositeTriton, _ProjectTriton
 
@@ -196,18 +196,25 @@ def _render_triton(tk, means, log_scales, quats, logit_opacities, blocks, viewma
                    height: int, sh_degree: int, background, antialiased: bool, near: float,
                    gather, weights) -> RenderOutput:
     """:func:`render` on the GPU path (float32 inputs on a CUDA device, or CPU tensors in
-    Triton's interpreter): culling, depth order and binning as the eager path's torch operations
-    without autograd, then two differentiable Triton kernels, projection + colour and
-    compositing (one launch each way). Same outputs as the eager path to float32 rounding
+    Triton's interpreter): culling in one Triton kernel, depth order and binning as torch
+    operations without autograd, then two differentiable Triton kernels, projection + colour
+    and compositing (one launch each way). Same outputs as the eager path to float32 rounding
     (tests/test_triton_kernels.py)."""
     n = means.shape[0]
     f64 = torch.float64
     params = (means, log_scales, quats, logit_opacities)
-    proj = project_gaussians(*params, viewmat, K, width, height, near=near, antialiased=antialiased,
-                             rows=False)
-    ids = proj.ids
     vm = viewmat.detach().to(device=means.device, dtype=f64)
     view = tk.view_arrays(vm, K.detach().to(device=means.device, dtype=f64), camera_centre(vm), near)
+    with torch.no_grad():
+        info = tk.cull(tuple(x.detach().contiguous() for x in params), view, width, height, antialiased)
+        ok = info[:, 0] > 0
+        radii = torch.where(ok, torch.ceil(info[:, 13]), torch.zeros_like(info[:, 13])).to(torch.int32)
+        vis = torch.nonzero(ok).squeeze(1)
+        # nonzero is increasing, so the stable sort breaks depth ties by Gaussian index
+        ids = vis.index_select(0, torch.sort(info[:, 1].index_select(0, vis), stable=True).indices)
+        info = info.index_select(0, ids)
+    proj = Projection(ids=ids, means2d=info[:, 2:4], chol=None, opacity=None, depth=None, radii=radii,
+                      bbox=info[:, 9:13].to(torch.int64), cov2d=info[:, 4:8], extent=info[:, 8])
     sh_vis = torch.cat([gather(b, ids) for b in blocks if b.shape[1]], 1)
     m2d, geo, depth, colour, pos64 = _ProjectTriton.apply(
         *(gather(x, ids) for x in params), sh_vis, (tk, sh_degree, view, width, height, antialiased))
@@ -263,9 +270,9 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
         tile_size: tile edge in pixels (binning granularity; results do not depend on it).
         compiled: run the per-pair maths through ``torch.compile`` (True), eagerly (False)
             or compiled when a compiler works, else eagerly with a warning (None); ``"numba"``:
-            numba's kernels (CPU, float32); ``"triton"``: projection, colour and compositing in
-            Triton's fused kernels (a CUDA device, float32; CPU tensors only in Triton's
-            interpreter), in 16x16 tiles whatever ``tile_size``; culling and binning as torch
+            numba's kernels (CPU, float32); ``"triton"``: culling, projection, colour and
+            compositing in Triton's fused kernels (a CUDA device, float32; CPU tensors only in
+            Triton's interpreter), in 16x16 tiles whatever ``tile_size``; binning as torch
             operations on the device.
         chunk_pairs: (pixel, Gaussian) pairs per chunk (working-set size).
         low_memory: keep no per-pair state between forward and backward (the backward

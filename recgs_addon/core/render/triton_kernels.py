@@ -180,6 +180,7 @@ class TritonKernels:
         self._bwd = triton.jit(_backward_kernel)
         self._proj_fwd = _triton_project._forward_kernel
         self._proj_bwd = _triton_project._backward_kernel
+        self._cull = _triton_project._cull_kernel
         self.interpret = interpreting()
         self.amin, self.amax, self.tmin = float(amin), float(amax), float(tmin)
         # what the per-Gaussian kernels read from ``cst`` (numba's order; near is set per call)
@@ -195,6 +196,17 @@ class TritonKernels:
         cst = torch.tensor([float(near)] + self._proj_consts[1:], dtype=f64, device=dev)
         return (vm.detach().to(f64).contiguous(), K.detach().to(f64).contiguous(),
                 campos.detach().to(f64).contiguous(), torch.tensor(self._shc, dtype=f64, device=dev), cst)
+
+    def cull(self, params, view: tuple, width: int, height: int, antialiased: bool) -> torch.Tensor:
+        """(N, 14) float64 culling and screen extent of every Gaussian (means, log_scales, quats,
+        logits, float32 contiguous; the columns of projection.py's ``_cull_rows``)."""
+        n, dev = params[0].shape[0], params[0].device
+        info = torch.empty(n, 14, dtype=torch.float64, device=dev)
+        if n:
+            vm, kk, _campos, _shc, cst = view
+            self._cull[(-(-n // _PROJECT_BLOCK),)](*params, vm, kk, cst, info, n, width, height,
+                                                   AA=bool(antialiased), BLOCK=_PROJECT_BLOCK)
+        return info
 
     def project_forward(self, rows, deg: int, view: tuple, width: int, height: int, antialiased: bool):
         """Projection and colour of the visible rows (means (V, 3), log_scales (V, 3), quats
