@@ -11,7 +11,7 @@
 #   1. the machine: torch, CUDA, the GPU, the cores;
 #   2. a training step at 50k and 500k Gaussians and 1280x960 (the sample survey scaled up), on
 #      the CPU's cores (numba's path), on the GPU's plain-PyTorch path and on Triton's kernels
-#      (culling, projection, compositing: the trainer's choice there): seconds a step and peak GPU memory
+#      (the whole render: the trainer's choice there): seconds a step and peak GPU memory
 #      (bench_threads.py);
 #   3. one render's forward and backward on the GPU with the plain-PyTorch path's tiles and
 #      chunks as sized for a CPU, and larger (bench_render_batch.py: the kernel launches), and

@@ -96,6 +96,27 @@ def _cases():
                 "cov2d": float((got[:, 4:8] - ref.cov2d).abs().max() / ref.cov2d.abs().max()) if same else 1.0,
                 "extent": float((got[:, 8] - ref.extent).abs().max()) if same else 1.0}
     res["cull"] = cull
+    # the binning kernels against the eager binning: the same intersections in the same order
+    from recgs_addon.core.render.tiles import _sort_by_tile, _tile_intersections
+    binning = {}
+    scenes = [("random-0", tr.make_scene(0, n=60, deg=3)), ("off-screen", tr._rounded(s)),
+              ("dense", tr.make_scene(8, n=150, width=36, height=20, logit=(3.0, 2.0))),
+              ("big", dict(tr.make_scene(5, n=400, width=70, height=53), width=70, height=53))]
+    for name, sc in scenes:
+        params = tr.torch_params(sc, torch.float32, False)
+        vm = torch.tensor(sc["viewmat"], dtype=torch.float64)
+        K = torch.tensor(sc["K"], dtype=torch.float64)
+        w, h = sc["width"], sc["height"]
+        ref = project_gaussians(*params[:4], vm, K, w, h)
+        tiles_x, tiles_y = -(-w // 16), -(-h // 16)
+        rows, count = _sort_by_tile(*_tile_intersections(ref, w, h, 16, False), tiles_x * tiles_y)
+        tk = rz._triton_kernels(params[0].device)
+        info = tk.cull(tuple(x.contiguous() for x in params[:4]), tk.view_arrays(vm, K, camera_centre(vm), 0.2), w, h,
+                       False)
+        start, got = tk.bin(info[ref.ids].contiguous(), 16, tiles_x, tiles_x * tiles_y)
+        binning[name] = {"intersections": int(rows.shape[0]), "rows_equal": bool(torch.equal(got.long(), rows)),
+                         "starts_equal": bool(torch.equal(start[1:] - start[:-1], count))}
+    res["binning"] = binning
     # blending weights: against the eager path's, and their sum is the image's alpha
     scene = tr.make_scene(8, n=150, width=36, height=20, logit=(3.0, 2.0))
     a, _, wa = tr._weights_of(scene, torch.float32, compiled=False)
@@ -170,6 +191,15 @@ def test_the_culling_kernel_keeps_what_the_eager_projection_keeps(results):
 
 
 @needs_triton
+def test_the_binning_kernels_give_the_eager_intersections_in_its_order(results):
+    """Every (tile, Gaussian) intersection the eager ellipse cut gives, in (tile, depth) order."""
+    for case, r in results["binning"].items():
+        assert r["rows_equal"] and r["starts_equal"], (case, r)
+        assert r["intersections"] > 0, case
+    assert results["binning"]["big"]["intersections"] > 1000
+
+
+@needs_triton
 def test_triton_blending_weights_match_eager(results):
     r = results["weights"]
     assert r["path"] == "triton"
@@ -239,6 +269,10 @@ def _compile_cases():
     yield "cull", tp._cull_kernel, dict(means=_P, log_scales=_P, quats=_P, logits=_P, vm="*fp64", kk="*fp64",
                                          cst="*fp64", info="*fp64", N="i32", width="i32", height="i32"), \
         dict(AA=True, BLOCK=tk._PROJECT_BLOCK)
+    for count in (True, False):
+        yield f"bin-{count}", tp._bin_kernel, dict(info="*fp64", offsets="*i64", tile_of="*i32", row_of="*i32",
+                                                    V="i32", tiles_x="i32"), \
+            dict(COUNT=count, TS=16, BLOCK=tk._PROJECT_BLOCK)
     yield "composite-forward", tk.triton.jit(tk._forward_kernel), {**_COMPOSITE_SIG, **_SCALARS}, \
         dict(TS=16, C=5, CB=8)
     yield "composite-backward", tk.triton.jit(tk._backward_kernel), \
@@ -265,7 +299,7 @@ def test_the_kernels_compile_for_nvidia_gpus():
                                        target=GPUTarget("cuda", arch, 32))
             assert kernel.asm["cubin"], (name, arch)
             done.append((name, arch))
-    assert len(done) == 14
+    assert len(done) == 18
 
 
 if __name__ == "__main__":

@@ -104,7 +104,7 @@ TRAIN_OPTIONS = OptionTable([
     Option("--seed", "Seed of the random generators", type=int, default=TrainConfig.seed,
            setting=Setting("Seed", minimum=0)),
     Option("--device", "cpu, cuda or mps (where torch has them). A GPU trains the same model. On an NVIDIA "
-                       "GPU with Triton (it comes with torch's CUDA builds) projection and compositing run in fused "
+                       "GPU with Triton (it comes with torch's CUDA builds) the whole render runs in fused "
                        "GPU kernels; elsewhere, and on mps, the plain-PyTorch path, which is about as fast as two CPU "
                        "cores: there, on a machine with more cores keep cpu", default=TrainConfig.device,
            setting=Setting("Device")),

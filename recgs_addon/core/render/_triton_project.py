@@ -621,3 +621,70 @@ def _cull_kernel(means, log_scales, quats, logits, vm, kk, cst, info, N, width, 
     tl.store(row + 11, tl.minimum(tl.maximum(y0, 0.0), h1), mask=ok)
     tl.store(row + 12, tl.minimum(tl.maximum(y1, 0.0), h1), mask=ok)
     tl.store(row + 13, tl.minimum(tl.maximum(r, 0.0), maxr), mask=ok)
+
+
+@_jit
+def _row_span(info, i, m, trow, TS: tl.constexpr):
+    """Tile row ``trow`` of Gaussian row i of ``info`` (visible rows, the culling's columns):
+    (its first tile column, its number of tiles, 0 if none), the ellipse ``d^T cov^-1 d <=
+    extent`` cut to the row's band of pixel-centre y (tiles.py's ``_row_spans``)."""
+    row = info + 14 * i
+    u = tl.load(row + 2, mask=m, other=0.0)
+    v = tl.load(row + 3, mask=m, other=0.0)
+    A = tl.load(row + 4, mask=m, other=1.0)
+    B = tl.load(row + 5, mask=m, other=0.0)
+    C = tl.load(row + 6, mask=m, other=1.0)
+    D = tl.load(row + 7, mask=m, other=1.0)
+    ext = tl.load(row + 8, mask=m, other=0.0)
+    x0 = tl.load(row + 9, mask=m, other=0.0)
+    x1 = tl.load(row + 10, mask=m, other=0.0)
+    y0 = tl.load(row + 11, mask=m, other=0.0)
+    y1 = tl.load(row + 12, mask=m, other=0.0)
+    band = (trow * TS).to(tl.float64)
+    lo = tl.maximum(band, y0) + 0.5 - v
+    hi = tl.minimum(band + (TS - 1), y1) + 0.5 - v
+    ylim = tl.sqrt(C * ext)
+    empty = (lo > ylim) | (hi < -ylim)
+    lo = tl.maximum(tl.minimum(lo, ylim), -ylim)
+    hi = tl.minimum(tl.maximum(hi, -ylim), ylim)
+    d_ext = B * tl.sqrt(ext / A)
+    dl = tl.minimum(tl.maximum(-d_ext, lo), hi)
+    dr = tl.minimum(tl.maximum(d_ext, lo), hi)
+    xl = (B * dl - tl.sqrt(tl.maximum(D * (C * ext - dl * dl), 0.0))) / C
+    xr = (B * dr + tl.sqrt(tl.maximum(D * (C * ext - dr * dr), 0.0))) / C
+    i0 = tl.maximum(tl.math.ceil(u + xl - 0.5), x0)
+    i1 = tl.minimum(tl.math.floor(u + xr - 0.5), x1)
+    none = empty | (i0 > i1) | (i1 < 0.0)
+    tx0 = tl.where(none, 0, tl.math.floor(i0 / TS).to(tl.int32))
+    ntx = tl.where(none, 0, tl.math.floor(i1 / TS).to(tl.int32) - tx0 + 1)
+    return tx0, ntx
+
+
+@_jit
+def _bin_kernel(info, offsets, tile_of, row_of, V, tiles_x, COUNT: tl.constexpr, TS: tl.constexpr,
+                BLOCK: tl.constexpr):
+    """Binning of the V visible rows (in depth order). ``COUNT``: each row's number of (tile,
+    row) intersections into ``offsets`` (V,) int64; else each row writes its intersections, in
+    tile-row then column order, from ``offsets`` (the exclusive running sum of the counts) on:
+    the tile id into ``tile_of`` (M,) int32 and the row into ``row_of`` (M,) int32."""
+    i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    m = i < V
+    ty0 = tl.math.floor(tl.load(info + 14 * i + 11, mask=m, other=0.0) / TS).to(tl.int32)
+    ty1 = tl.math.floor(tl.load(info + 14 * i + 12, mask=m, other=0.0) / TS).to(tl.int32)
+    nrows = tl.where(m, ty1 - ty0 + 1, 0)
+    at = tl.zeros((BLOCK,), tl.int64)
+    if not COUNT:
+        at = tl.load(offsets + i, mask=m, other=0)
+    for r in range(0, tl.max(nrows, 0)):
+        active = m & (r < nrows)
+        trow = ty0 + r
+        tx0, ntx = _row_span(info, i, active, trow, TS)
+        ntx = tl.where(active, ntx, 0)
+        if not COUNT:
+            for j in range(0, tl.max(ntx, 0)):
+                put = j < ntx
+                tl.store(tile_of + at + j, trow * tiles_x + tx0 + j, mask=put)
+                tl.store(row_of + at + j, i, mask=put)
+        at = at + ntx
+    if COUNT:
+        tl.store(offsets + i, at, mask=m)

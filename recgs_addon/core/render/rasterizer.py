@@ -44,8 +44,8 @@ from .chunks import ALPHA_MAX, T_MIN, _chunk_backward, _chunk_forward
 from .composite import _Composite
 from .kernels import _KERNEL_CACHE, _Kernels, _compiled_kernels, _sh_fn, _smoke_test
 from .numba_path import _CompositeNumba, _ProjectNumba
-from .projection import ALPHA_MIN, Projection, _index_rows, camera_centre, project_gaussians
-from .tiles import _Plan, _build_plan, _flat_plan
+from .projection import ALPHA_MIN, _index_rows, camera_centre, project_gaussians
+from .tiles import _Plan, _build_plan
 from .triton_path import _CompositeTriton, _ProjectTriton
 
 #: Default near plane (scene units), INRIA.
@@ -196,9 +196,9 @@ def _render_triton(tk, means, log_scales, quats, logit_opacities, blocks, viewma
                    height: int, sh_degree: int, background, antialiased: bool, near: float,
                    gather, weights) -> RenderOutput:
     """:func:`render` on the GPU path (float32 inputs on a CUDA device, or CPU tensors in
-    Triton's interpreter): culling in one Triton kernel, depth order and binning as torch
-    operations without autograd, then two differentiable Triton kernels, projection + colour
-    and compositing (one launch each way). Same outputs as the eager path to float32 rounding
+    Triton's interpreter): culling and binning in Triton kernels without autograd (the depth
+    order and the sort by tile torch's), then two differentiable Triton kernels, projection +
+    colour and compositing (one launch each way). Same outputs as the eager path to float32 rounding
     (tests/test_triton_kernels.py)."""
     n = means.shape[0]
     f64 = torch.float64
@@ -212,9 +212,7 @@ def _render_triton(tk, means, log_scales, quats, logit_opacities, blocks, viewma
         vis = torch.nonzero(ok).squeeze(1)
         # nonzero is increasing, so the stable sort breaks depth ties by Gaussian index
         ids = vis.index_select(0, torch.sort(info[:, 1].index_select(0, vis), stable=True).indices)
-        info = info.index_select(0, ids)
-    proj = Projection(ids=ids, means2d=info[:, 2:4], chol=None, opacity=None, depth=None, radii=radii,
-                      bbox=info[:, 9:13].to(torch.int64), cov2d=info[:, 4:8], extent=info[:, 8])
+        info = info.index_select(0, ids).contiguous()
     sh_vis = torch.cat([gather(b, ids) for b in blocks if b.shape[1]], 1)
     m2d, geo, depth, colour, pos64 = _ProjectTriton.apply(
         *(gather(x, ids) for x in params), sh_vis, (tk, sh_degree, view, width, height, antialiased))
@@ -222,7 +220,11 @@ def _render_triton(tk, means, log_scales, quats, logit_opacities, blocks, viewma
     means2d = torch.zeros(n, 2, device=means.device).index_copy(0, ids, m2d)
     if means2d.requires_grad:
         means2d.retain_grad()
-    plan = _flat_plan(proj, width, height, TRITON_TILE_SIZE)
+    ts = TRITON_TILE_SIZE
+    plan = _Plan(width, height, ts, -(-width // ts), -(-height // ts), int(ids.shape[0]))
+    plan.tile_start, plan.isect_rows = tk.bin(info, ts, plan.tiles_x, plan.tiles_x * plan.tiles_y)
+    plan.intersections = int(plan.isect_rows.shape[0])
+    plan.pairs = plan.intersections * ts * ts
     plan.weights = weights
     acc = _CompositeTriton.apply(means2d, geo[:, :3], geo[:, 3], values, pos64, ids, plan, tk)
     alpha = acc[..., 4]
@@ -230,7 +232,7 @@ def _render_triton(tk, means, log_scales, quats, logit_opacities, blocks, viewma
     stats = dict(visible=int(ids.shape[0]), intersections=plan.intersections, pairs=plan.pairs,
                  chunks=0, compiled=False, path="triton")
     return RenderOutput(rgb=rgb, alpha=alpha, depth=acc[..., 3], means2d=means2d,
-                        radii=proj.radii, stats=stats)
+                        radii=radii, stats=stats)
 
 
 # ----------------------------------------------------------------------------------------
@@ -270,10 +272,9 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
         tile_size: tile edge in pixels (binning granularity; results do not depend on it).
         compiled: run the per-pair maths through ``torch.compile`` (True), eagerly (False)
             or compiled when a compiler works, else eagerly with a warning (None); ``"numba"``:
-            numba's kernels (CPU, float32); ``"triton"``: culling, projection, colour and
-            compositing in Triton's fused kernels (a CUDA device, float32; CPU tensors only in
-            Triton's interpreter), in 16x16 tiles whatever ``tile_size``; binning as torch
-            operations on the device.
+            numba's kernels (CPU, float32); ``"triton"``: culling, binning, projection, colour
+            and compositing in Triton's kernels (a CUDA device, float32; CPU tensors only in
+            Triton's interpreter), in 16x16 tiles whatever ``tile_size``.
         chunk_pairs: (pixel, Gaussian) pairs per chunk (working-set size).
         low_memory: keep no per-pair state between forward and backward (the backward
             replays the forward chunk by chunk): about 8 bytes less per pair, ~1/3 slower.

@@ -40,7 +40,7 @@ class _Plan:
     slot_rows: Optional[torch.Tensor] = None     # (S,) int64
     slot_tiles: Optional[torch.Tensor] = None    # (S,) int64 tile of each slot
     pairs: int = 0
-    #: numba's path (no chunks, no padding): the intersections in (tile, depth) order, as the
+    #: numba's and the GPU path (no chunks, no padding): the intersections in (tile, depth) order, as the
     #: visible row of each (M,) int32, and each tile's offset into them (n_tiles + 1,) int64
     isect_rows: Optional[torch.Tensor] = None
     tile_start: Optional[torch.Tensor] = None
@@ -111,21 +111,6 @@ def _sort_by_tile(rows: torch.Tensor, tile: torch.Tensor, n_tiles: int) -> tuple
     tile; int32 keys: torch's stable CPU sort is a radix sort for them (~20x faster than int64)."""
     tile_sorted, perm = torch.sort(tile.to(torch.int32), stable=True)
     return rows.index_select(0, perm), torch.bincount(tile_sorted, minlength=n_tiles)
-
-
-def _flat_plan(proj, width: int, height: int, tile_size: int) -> _Plan:
-    """The binning of the GPU path: no chunks, no padding; ``isect_rows`` (M,) int32 and
-    ``tile_start`` (n_tiles + 1,) int64 as numba's path has them (built on the device)."""
-    ts = tile_size
-    plan = _Plan(width, height, ts, -(-width // ts), -(-height // ts), int(proj.ids.shape[0]))
-    n_tiles = plan.tiles_x * plan.tiles_y
-    rows, tile = _tile_intersections(proj, width, height, ts, False)
-    rows_sorted, count = _sort_by_tile(rows, tile, n_tiles)
-    plan.isect_rows = rows_sorted.to(torch.int32)
-    plan.tile_start = torch.cat([count.new_zeros(1), torch.cumsum(count, 0)])
-    plan.intersections = int(rows.shape[0])
-    plan.pairs = plan.intersections * ts * ts
-    return plan
 
 
 def _build_plan(proj, width: int, height: int, tile_size: int, chunk_pairs: int,

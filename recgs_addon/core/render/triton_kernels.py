@@ -181,6 +181,7 @@ class TritonKernels:
         self._proj_fwd = _triton_project._forward_kernel
         self._proj_bwd = _triton_project._backward_kernel
         self._cull = _triton_project._cull_kernel
+        self._bin = _triton_project._bin_kernel
         self.interpret = interpreting()
         self.amin, self.amax, self.tmin = float(amin), float(amax), float(tmin)
         # what the per-Gaussian kernels read from ``cst`` (numba's order; near is set per call)
@@ -207,6 +208,28 @@ class TritonKernels:
             self._cull[(-(-n // _PROJECT_BLOCK),)](*params, vm, kk, cst, info, n, width, height,
                                                    AA=bool(antialiased), BLOCK=_PROJECT_BLOCK)
         return info
+
+    def bin(self, info, ts: int, tiles_x: int, n_tiles: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The binning of the visible rows ``info`` (V, 14) (depth order, :meth:`cull`'s
+        columns) into ts x ts tiles: (tile_start (n_tiles + 1,) int64, isect_rows (M,) int32),
+        the intersections in (tile, depth) order as numba's binning has them."""
+        v, dev = info.shape[0], info.device
+        counts = torch.zeros(v, dtype=torch.int64, device=dev)
+        grid = (max(1, -(-v // _PROJECT_BLOCK)),)
+        none = torch.zeros(1, dtype=torch.int32, device=dev)
+        if v:
+            self._bin[grid](info, counts, none, none, v, tiles_x, COUNT=True, TS=ts, BLOCK=_PROJECT_BLOCK)
+        ends = torch.cumsum(counts, 0)
+        m = int(ends[-1]) if v else 0
+        tile_of = torch.empty(m, dtype=torch.int32, device=dev)
+        row_of = torch.empty(m, dtype=torch.int32, device=dev)
+        if m:
+            self._bin[grid](info, ends - counts, tile_of, row_of, v, tiles_x, COUNT=False, TS=ts,
+                            BLOCK=_PROJECT_BLOCK)
+        # rows come in depth order: a stable sort by tile keeps it inside each tile
+        tile_sorted, perm = torch.sort(tile_of, stable=True)
+        count = torch.bincount(tile_sorted, minlength=n_tiles)
+        return torch.cat([count.new_zeros(1), torch.cumsum(count, 0)]), row_of.index_select(0, perm)
 
     def project_forward(self, rows, deg: int, view: tuple, width: int, height: int, antialiased: bool):
         """Projection and colour of the visible rows (means (V, 3), log_scales (V, 3), quats

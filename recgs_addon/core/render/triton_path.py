@@ -1,8 +1,8 @@
 """The autograd Functions of the GPU path, each one launch of Triton's kernels
 (:mod:`.triton_kernels`) forward and one backward: projection + SH colour of the visible
 Gaussians (:class:`_ProjectTriton`) and compositing over every tile (:class:`_CompositeTriton`).
-Culling and binning before them are the eager path's torch operations without autograd, on the
-same device; :func:`.rasterizer._render_triton` runs a view through them."""
+Culling and binning before them are Triton kernels too, without autograd;
+:func:`.rasterizer._render_triton` runs a view through them."""
 from __future__ import annotations
 
 import torch
@@ -49,7 +49,7 @@ class _CompositeTriton(torch.autograd.Function):
     """:class:`.composite._Composite` through Triton's kernels (float32 compositing, whatever
     the inputs' dtype; gradients come back in it). Inputs: means2d_full (N, 2) [gradient
     only], chol (V, 3), opacity (V,), values (V, C), pos64 (V, 2) detached centres, ids (V,),
-    plan (:func:`.tiles._flat_plan`), kernels. Output: (H, W, C) accumulated values."""
+    plan (``tile_start`` and ``isect_rows``: :meth:`.triton_kernels.TritonKernels.bin`), kernels. Output: (H, W, C) accumulated values."""
 
     @staticmethod
     def forward(ctx, means2d_full, chol, opacity, values, pos64, ids, plan, tk):

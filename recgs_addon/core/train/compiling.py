@@ -258,7 +258,7 @@ class CompileSwitch:
             use_user_cache()
             self.state = "compiled"
         elif str(device).startswith("cuda") and _triton_ready():
-            # culling, projection, colour and compositing in Triton's fused kernels; binning torch's
+            # culling, binning, projection, colour and compositing in Triton's kernels
             self.state, self.reason = "triton", f"device {device}"
             self._say(f"device {device}: training on Triton's GPU kernels")
         elif str(device) != "cpu":
