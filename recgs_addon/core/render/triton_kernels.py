@@ -188,15 +188,20 @@ class TritonKernels:
         self._proj_consts = [0.0, pj.COV2D_DILATION, pj.FRUSTUM_CLAMP, pj.ALPHA_MIN, pj.QUAT_EPS ** 2,
                              pj.AA_RATIO_EPS, pj.BIN_MARGIN_REL, pj.BIN_MARGIN_ABS, pj.MAX_RADIUS]
         self._shc = [gs.SH_C0, gs.SH_C1, *gs.SH_C2, *gs.SH_C3]
+        self._constants: dict = {}
 
     def view_arrays(self, vm, K, campos, near: float) -> tuple:
         """The view's float64 arrays on the device the kernels read (viewmat, K, camera centre,
         SH constants, projection constants)."""
         dev = vm.device
         f64 = torch.float64
-        cst = torch.tensor([float(near)] + self._proj_consts[1:], dtype=f64, device=dev)
+        key = (float(near), str(dev))
+        if key not in self._constants:      # made once: no host-to-device copy a view
+            self._constants[key] = (torch.tensor(self._shc, dtype=f64, device=dev),
+                                    torch.tensor([float(near)] + self._proj_consts[1:], dtype=f64, device=dev))
+        shc, cst = self._constants[key]
         return (vm.detach().to(f64).contiguous(), K.detach().to(f64).contiguous(),
-                campos.detach().to(f64).contiguous(), torch.tensor(self._shc, dtype=f64, device=dev), cst)
+                campos.detach().to(f64).contiguous(), shc, cst)
 
     def cull(self, params, view: tuple, width: int, height: int, antialiased: bool) -> torch.Tensor:
         """(N, 14) float64 culling and screen extent of every Gaussian (means, log_scales, quats,
