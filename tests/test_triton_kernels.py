@@ -117,6 +117,7 @@ def _cases():
         binning[name] = {"intersections": int(rows.shape[0]), "rows_equal": bool(torch.equal(got.long(), rows)),
                          "starts_equal": bool(torch.equal(start[1:] - start[:-1], count))}
     res["binning"] = binning
+    res["training"] = _training()
     # blending weights: against the eager path's, and their sum is the image's alpha
     scene = tr.make_scene(8, n=150, width=36, height=20, logit=(3.0, 2.0))
     a, _, wa = tr._weights_of(scene, torch.float32, compiled=False)
@@ -125,6 +126,41 @@ def _cases():
     res["weights"] = {"err": float((wa - wb).abs().max() / wa.abs().max()),
                       "sum_err": abs(float(wb.sum()) - alpha) / alpha, "path": b.stats["path"]}
     return res
+
+
+def _training():
+    """The same training on the eager path and on Triton's kernels (the trainer's render, row
+    gathers, densification from the screen-space gradients and the blending weights, Adam):
+    held-out PSNR and Gaussians after 24 steps from one seed (small: the interpreter takes
+    about a second a step)."""
+    import tempfile
+    from pathlib import Path
+
+    from conftest import write_rendered_scene
+    from recgs_addon.core.train.config import preset
+    from recgs_addon.core.train.trainer import make_trainer
+    root = Path(tempfile.mkdtemp()) / "scene"
+    write_rendered_scene(root, n_views=6, width=32, height=24, n_gauss=60)
+    from recgs_addon.core.render import triton_kernels
+    calls = [0]
+    composite = triton_kernels.TritonKernels.forward
+
+    def counted(self, *a, **k):
+        calls[0] += 1
+        return composite(self, *a, **k)
+    triton_kernels.TritonKernels.forward = counted
+    out = {}
+    for path in (False, "triton"):
+        cfg = preset("default", iterations=24, eval_every=1000, log_every=1000, holdout_every=3, compiled=False,
+                     densify_from=8, densify_every=8, densify_until=20, pyramid=((8, 2),))
+        t = make_trainer(root, cfg)
+        t.compiler.compiled = lambda path=path: path
+        t.train_until()
+        ev = t.evaluate()
+        out[str(path)] = {"psnr": ev["psnr"], "gaussians": int(t.params["means"].shape[0]),
+                          "iterations": int(t.step), "triton_renders": calls[0]}
+    triton_kernels.TritonKernels.forward = composite
+    return out
 
 
 # ------------------------------------------------------------------------------ the tests
@@ -197,6 +233,17 @@ def test_the_binning_kernels_give_the_eager_intersections_in_its_order(results):
         assert r["rows_equal"] and r["starts_equal"], (case, r)
         assert r["intersections"] > 0, case
     assert results["binning"]["big"]["intersections"] > 1000
+
+
+@needs_triton
+def test_training_on_the_triton_kernels_is_training_on_the_eager_path(results):
+    """Equal steps give the same model: held-out PSNR within 0.05 dB, the same Gaussians."""
+    r = results["training"]
+    eager, gpu = r["False"], r["triton"]
+    assert eager["iterations"] == gpu["iterations"] == 24
+    assert eager["triton_renders"] == 0 and gpu["triton_renders"] >= 24
+    assert eager["psnr"] > 12 and abs(eager["psnr"] - gpu["psnr"]) < 0.05, r
+    assert abs(eager["gaussians"] - gpu["gaussians"]) <= 0.02 * eager["gaussians"], r
 
 
 @needs_triton
