@@ -135,6 +135,94 @@ def _direction(means, campos, i, m):
 
 
 @_jit
+def _camera(means, i, m, v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23):
+    """Camera-space position of the means (the rows of ``means @ Rw.T + tw``, float64)."""
+    m0 = _f64(means, 3 * i, m)
+    m1 = _f64(means, 3 * i + 1, m)
+    m2 = _f64(means, 3 * i + 2, m)
+    x = m0 * v00 + m1 * v01 + m2 * v02 + v03
+    y = m0 * v10 + m1 * v11 + m2 * v12 + v13
+    z = m0 * v20 + m1 * v21 + m2 * v22 + v23
+    return x, y, z
+
+
+@_jit
+def _scales(log_scales, i, m):
+    s0 = tl.exp(_f64(log_scales, 3 * i, m))
+    s1 = tl.exp(_f64(log_scales, 3 * i + 1, m))
+    s2 = tl.exp(_f64(log_scales, 3 * i + 2, m))
+    return s0, s1, s2
+
+
+@_jit
+def _ewa(fi0, fi1, xz, yz, v00, v01, v02, v10, v11, v12, v20, v21, v22,
+         r00, r01, r02, r10, r11, r12, r20, r21, r22, s0, s1, s2):
+    """EWA projection: e (the rows of J Rw without fx / z, fy / z: e0_k = vm[0, k] - xz
+    vm[2, k], e1_k likewise with yz) and the rows a = T M, b (T = J Rw, M = R diag(s))."""
+    e00 = v00 - xz * v20
+    e01 = v01 - xz * v21
+    e02 = v02 - xz * v22
+    e10 = v10 - yz * v20
+    e11 = v11 - yz * v21
+    e12 = v12 - yz * v22
+    t00 = fi0 * e00
+    t01 = fi0 * e01
+    t02 = fi0 * e02
+    t10 = fi1 * e10
+    t11 = fi1 * e11
+    t12 = fi1 * e12
+    a0 = (t00 * r00 + t01 * r10 + t02 * r20) * s0
+    a1 = (t00 * r01 + t01 * r11 + t02 * r21) * s1
+    a2 = (t00 * r02 + t01 * r12 + t02 * r22) * s2
+    b0 = (t10 * r00 + t11 * r10 + t12 * r20) * s0
+    b1 = (t10 * r01 + t11 * r11 + t12 * r21) * s1
+    b2 = (t10 * r02 + t11 * r12 + t12 * r22) * s2
+    return e00, e01, e02, e10, e11, e12, a0, a1, a2, b0, b1, b2
+
+
+@_jit
+def _conic(a0, a1, a2, b0, b1, b2, dil):
+    """A = a.a, B = a.b, C = b.b, a x b, det0 = |a x b|^2 (no A C - B^2 cancellation) and the
+    dilated determinant."""
+    A = a0 * a0 + a1 * a1 + a2 * a2
+    B = a0 * b0 + a1 * b1 + a2 * b2
+    C = b0 * b0 + b1 * b1 + b2 * b2
+    c0 = a1 * b2 - a2 * b1
+    c1 = a2 * b0 - a0 * b2
+    c2 = a0 * b1 - a1 * b0
+    det0 = c0 * c0 + c1 * c1 + c2 * c2
+    det = det0 + dil * (A + C) + dil * dil
+    return A, B, C, c0, c1, c2, det0, det
+
+
+@_jit
+def _sh_raw(row, m, k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11, k12, k13, k14, k15,
+            DEG: tl.constexpr):
+    """One channel's SH sum (float32, coefficient by coefficient as numba's): ``row`` points at
+    the channel's coefficient 0 of each Gaussian (stride 3 between coefficients)."""
+    raw = k0 * tl.load(row, mask=m, other=0.0)
+    if DEG > 0:
+        raw = raw + k1 * tl.load(row + 3, mask=m, other=0.0)
+        raw = raw + k2 * tl.load(row + 6, mask=m, other=0.0)
+        raw = raw + k3 * tl.load(row + 9, mask=m, other=0.0)
+    if DEG > 1:
+        raw = raw + k4 * tl.load(row + 12, mask=m, other=0.0)
+        raw = raw + k5 * tl.load(row + 15, mask=m, other=0.0)
+        raw = raw + k6 * tl.load(row + 18, mask=m, other=0.0)
+        raw = raw + k7 * tl.load(row + 21, mask=m, other=0.0)
+        raw = raw + k8 * tl.load(row + 24, mask=m, other=0.0)
+    if DEG > 2:
+        raw = raw + k9 * tl.load(row + 27, mask=m, other=0.0)
+        raw = raw + k10 * tl.load(row + 30, mask=m, other=0.0)
+        raw = raw + k11 * tl.load(row + 33, mask=m, other=0.0)
+        raw = raw + k12 * tl.load(row + 36, mask=m, other=0.0)
+        raw = raw + k13 * tl.load(row + 39, mask=m, other=0.0)
+        raw = raw + k14 * tl.load(row + 42, mask=m, other=0.0)
+        raw = raw + k15 * tl.load(row + 45, mask=m, other=0.0)
+    return raw
+
+
+@_jit
 def _forward_kernel(means, log_scales, quats, logits, sh, vm, kk, campos, shc, cst, pos, geo, depth, colour,
                     V, width, height, KS: tl.constexpr, DEG: tl.constexpr, AA: tl.constexpr,
                     BLOCK: tl.constexpr):
@@ -146,12 +234,7 @@ def _forward_kernel(means, log_scales, quats, logits, sh, vm, kk, campos, shc, c
     v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23, fx, fy, cx, cy, limx, limy = _setup(
         vm, kk, cst, width, height)
     dil = tl.load(cst + 1)
-    m0 = _f64(means, 3 * i, m)
-    m1 = _f64(means, 3 * i + 1, m)
-    m2 = _f64(means, 3 * i + 2, m)
-    x = m0 * v00 + m1 * v01 + m2 * v02 + v03
-    y = m0 * v10 + m1 * v11 + m2 * v12 + v13
-    z = m0 * v20 + m1 * v21 + m2 * v22 + v23
+    x, y, z = _camera(means, i, m, v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23)
     z = tl.where(m, z, 1.0)
     inv_z = 1.0 / z
     u = fx * x * inv_z + cx
@@ -159,31 +242,13 @@ def _forward_kernel(means, log_scales, quats, logits, sh, vm, kk, campos, shc, c
     xz = tl.minimum(tl.maximum(x * inv_z, -limx), limx)
     yz = tl.minimum(tl.maximum(y * inv_z, -limy), limy)
     r00, r01, r02, r10, r11, r12, r20, r21, r22, qw, qx, qy, qz, rn = _rotation(quats, i, m, tl.load(cst + 4))
-    s0 = tl.exp(_f64(log_scales, 3 * i, m))
-    s1 = tl.exp(_f64(log_scales, 3 * i + 1, m))
-    s2 = tl.exp(_f64(log_scales, 3 * i + 2, m))
+    s0, s1, s2 = _scales(log_scales, i, m)
     fi0 = fx * inv_z
     fi1 = fy * inv_z
-    t00 = fi0 * (v00 - xz * v20)
-    t01 = fi0 * (v01 - xz * v21)
-    t02 = fi0 * (v02 - xz * v22)
-    t10 = fi1 * (v10 - yz * v20)
-    t11 = fi1 * (v11 - yz * v21)
-    t12 = fi1 * (v12 - yz * v22)
-    a0 = (t00 * r00 + t01 * r10 + t02 * r20) * s0
-    a1 = (t00 * r01 + t01 * r11 + t02 * r21) * s1
-    a2 = (t00 * r02 + t01 * r12 + t02 * r22) * s2
-    b0 = (t10 * r00 + t11 * r10 + t12 * r20) * s0
-    b1 = (t10 * r01 + t11 * r11 + t12 * r21) * s1
-    b2 = (t10 * r02 + t11 * r12 + t12 * r22) * s2
-    B = a0 * b0 + a1 * b1 + a2 * b2
-    C = b0 * b0 + b1 * b1 + b2 * b2
-    A = a0 * a0 + a1 * a1 + a2 * a2
-    c0 = a1 * b2 - a2 * b1
-    c1 = a2 * b0 - a0 * b2
-    c2 = a0 * b1 - a1 * b0
-    det0 = c0 * c0 + c1 * c1 + c2 * c2          # |a x b|^2: no A C - B^2 cancellation
-    det = det0 + dil * (A + C) + dil * dil
+    e00, e01, e02, e10, e11, e12, a0, a1, a2, b0, b1, b2 = _ewa(
+        fi0, fi1, xz, yz, v00, v01, v02, v10, v11, v12, v20, v21, v22,
+        r00, r01, r02, r10, r11, r12, r20, r21, r22, s0, s1, s2)
+    A, B, C, c0, c1, c2, det0, det = _conic(a0, a1, a2, b0, b1, b2, dil)
     o = 1.0 / (1.0 + tl.exp(-_f64(logits, i, m)))
     if AA:
         o = o * tl.sqrt(tl.maximum(det0 / det, tl.load(cst + 5)))
@@ -200,26 +265,8 @@ def _forward_kernel(means, log_scales, quats, logits, sh, vm, kk, campos, shc, c
     k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11, k12, k13, k14, k15 = _sh_basis(
         ux.to(tl.float32), uy.to(tl.float32), uz.to(tl.float32), shc, DEG)
     for c in tl.static_range(3):
-        row = sh + i * (3 * KS) + c
-        raw = k0 * tl.load(row, mask=m, other=0.0)
-        if DEG > 0:
-            raw = raw + k1 * tl.load(row + 3, mask=m, other=0.0)
-            raw = raw + k2 * tl.load(row + 6, mask=m, other=0.0)
-            raw = raw + k3 * tl.load(row + 9, mask=m, other=0.0)
-        if DEG > 1:
-            raw = raw + k4 * tl.load(row + 12, mask=m, other=0.0)
-            raw = raw + k5 * tl.load(row + 15, mask=m, other=0.0)
-            raw = raw + k6 * tl.load(row + 18, mask=m, other=0.0)
-            raw = raw + k7 * tl.load(row + 21, mask=m, other=0.0)
-            raw = raw + k8 * tl.load(row + 24, mask=m, other=0.0)
-        if DEG > 2:
-            raw = raw + k9 * tl.load(row + 27, mask=m, other=0.0)
-            raw = raw + k10 * tl.load(row + 30, mask=m, other=0.0)
-            raw = raw + k11 * tl.load(row + 33, mask=m, other=0.0)
-            raw = raw + k12 * tl.load(row + 36, mask=m, other=0.0)
-            raw = raw + k13 * tl.load(row + 39, mask=m, other=0.0)
-            raw = raw + k14 * tl.load(row + 42, mask=m, other=0.0)
-            raw = raw + k15 * tl.load(row + 45, mask=m, other=0.0)
+        raw = _sh_raw(sh + i * (3 * KS) + c, m, k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11, k12, k13,
+                      k14, k15, DEG)
         tl.store(colour + 3 * i + c, tl.maximum(raw + 0.5, 0.0), mask=m)
 
 
@@ -246,12 +293,7 @@ def _backward_kernel(means, log_scales, quats, logits, sh, vm, kk, campos, shc, 
         vm, kk, cst, width, height)
     dil = tl.load(cst + 1)
     aaeps = tl.load(cst + 5)
-    m0 = _f64(means, 3 * i, m)
-    m1 = _f64(means, 3 * i + 1, m)
-    m2 = _f64(means, 3 * i + 2, m)
-    x = m0 * v00 + m1 * v01 + m2 * v02 + v03
-    y = m0 * v10 + m1 * v11 + m2 * v12 + v13
-    z = m0 * v20 + m1 * v21 + m2 * v22 + v23
+    x, y, z = _camera(means, i, m, v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23)
     z = tl.where(m, z, 1.0)
     inv_z = 1.0 / z
     xr = x * inv_z
@@ -259,37 +301,19 @@ def _backward_kernel(means, log_scales, quats, logits, sh, vm, kk, campos, shc, 
     xz = tl.minimum(tl.maximum(xr, -limx), limx)
     yz = tl.minimum(tl.maximum(yr, -limy), limy)
     r00, r01, r02, r10, r11, r12, r20, r21, r22, qw, qx, qy, qz, rn = _rotation(quats, i, m, tl.load(cst + 4))
-    s0 = tl.exp(_f64(log_scales, 3 * i, m))
-    s1 = tl.exp(_f64(log_scales, 3 * i + 1, m))
-    s2 = tl.exp(_f64(log_scales, 3 * i + 2, m))
+    s0, s1, s2 = _scales(log_scales, i, m)
     fi0 = fx * inv_z
     fi1 = fy * inv_z
-    e00 = v00 - xz * v20
-    e01 = v01 - xz * v21
-    e02 = v02 - xz * v22
-    e10 = v10 - yz * v20
-    e11 = v11 - yz * v21
-    e12 = v12 - yz * v22
+    e00, e01, e02, e10, e11, e12, a0, a1, a2, b0, b1, b2 = _ewa(
+        fi0, fi1, xz, yz, v00, v01, v02, v10, v11, v12, v20, v21, v22,
+        r00, r01, r02, r10, r11, r12, r20, r21, r22, s0, s1, s2)
     t00 = fi0 * e00
     t01 = fi0 * e01
     t02 = fi0 * e02
     t10 = fi1 * e10
     t11 = fi1 * e11
     t12 = fi1 * e12
-    a0 = (t00 * r00 + t01 * r10 + t02 * r20) * s0
-    a1 = (t00 * r01 + t01 * r11 + t02 * r21) * s1
-    a2 = (t00 * r02 + t01 * r12 + t02 * r22) * s2
-    b0 = (t10 * r00 + t11 * r10 + t12 * r20) * s0
-    b1 = (t10 * r01 + t11 * r11 + t12 * r21) * s1
-    b2 = (t10 * r02 + t11 * r12 + t12 * r22) * s2
-    B = a0 * b0 + a1 * b1 + a2 * b2
-    C = b0 * b0 + b1 * b1 + b2 * b2
-    A = a0 * a0 + a1 * a1 + a2 * a2
-    c0 = a1 * b2 - a2 * b1
-    c1 = a2 * b0 - a0 * b2
-    c2 = a0 * b1 - a1 * b0
-    det0 = c0 * c0 + c1 * c1 + c2 * c2
-    det = det0 + dil * (A + C) + dil * dil
+    A, B, C, c0, c1, c2, det0, det = _conic(a0, a1, a2, b0, b1, b2, dil)
     o = 1.0 / (1.0 + tl.exp(-_f64(logits, i, m)))
     sqrt_cd = tl.sqrt(C + dil)
     sqrt_det = tl.sqrt(det)
@@ -422,26 +446,8 @@ def _backward_kernel(means, log_scales, quats, logits, sh, vm, kk, campos, shc, 
     gb_14 = tl.zeros_like(ux)
     gb_15 = tl.zeros_like(ux)
     for c in tl.static_range(3):
-        row = sh + i * (3 * KS) + c
-        raw = k0 * tl.load(row, mask=m, other=0.0)
-        if DEG > 0:
-            raw = raw + k1 * tl.load(row + 3, mask=m, other=0.0)
-            raw = raw + k2 * tl.load(row + 6, mask=m, other=0.0)
-            raw = raw + k3 * tl.load(row + 9, mask=m, other=0.0)
-        if DEG > 1:
-            raw = raw + k4 * tl.load(row + 12, mask=m, other=0.0)
-            raw = raw + k5 * tl.load(row + 15, mask=m, other=0.0)
-            raw = raw + k6 * tl.load(row + 18, mask=m, other=0.0)
-            raw = raw + k7 * tl.load(row + 21, mask=m, other=0.0)
-            raw = raw + k8 * tl.load(row + 24, mask=m, other=0.0)
-        if DEG > 2:
-            raw = raw + k9 * tl.load(row + 27, mask=m, other=0.0)
-            raw = raw + k10 * tl.load(row + 30, mask=m, other=0.0)
-            raw = raw + k11 * tl.load(row + 33, mask=m, other=0.0)
-            raw = raw + k12 * tl.load(row + 36, mask=m, other=0.0)
-            raw = raw + k13 * tl.load(row + 39, mask=m, other=0.0)
-            raw = raw + k14 * tl.load(row + 42, mask=m, other=0.0)
-            raw = raw + k15 * tl.load(row + 45, mask=m, other=0.0)
+        raw = _sh_raw(sh + i * (3 * KS) + c, m, k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11, k12, k13,
+                      k14, k15, DEG)
         gc = tl.load(g_colour + 3 * i + c, mask=m, other=0.0).to(tl.float32)
         gr = tl.where(raw + 0.5 >= 0.0, gc, 0.0)
         gb_0 = gb_0 + _sh_channel(sh, i, m, c, gr, d_sh, k0, 0, KS)
@@ -548,12 +554,7 @@ def _cull_kernel(means, log_scales, quats, logits, vm, kk, cst, info, N, width, 
     mrel = tl.load(cst + 6)
     mabs = tl.load(cst + 7)
     maxr = tl.load(cst + 8)
-    m0 = _f64(means, 3 * i, m)
-    m1 = _f64(means, 3 * i + 1, m)
-    m2 = _f64(means, 3 * i + 2, m)
-    x = m0 * v00 + m1 * v01 + m2 * v02 + v03
-    y = m0 * v10 + m1 * v11 + m2 * v12 + v13
-    z = m0 * v20 + m1 * v21 + m2 * v22 + v23
+    x, y, z = _camera(means, i, m, v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23)
     front = m & (z > near)
     z = tl.where(front, z, 1.0)
     inv_z = 1.0 / z
@@ -562,31 +563,13 @@ def _cull_kernel(means, log_scales, quats, logits, vm, kk, cst, info, N, width, 
     xz = tl.minimum(tl.maximum(x * inv_z, -limx), limx)
     yz = tl.minimum(tl.maximum(y * inv_z, -limy), limy)
     r00, r01, r02, r10, r11, r12, r20, r21, r22, qw, qx, qy, qz, rn = _rotation(quats, i, m, tl.load(cst + 4))
-    s0 = tl.exp(_f64(log_scales, 3 * i, m))
-    s1 = tl.exp(_f64(log_scales, 3 * i + 1, m))
-    s2 = tl.exp(_f64(log_scales, 3 * i + 2, m))
+    s0, s1, s2 = _scales(log_scales, i, m)
     fi0 = fx * inv_z
     fi1 = fy * inv_z
-    t00 = fi0 * (v00 - xz * v20)
-    t01 = fi0 * (v01 - xz * v21)
-    t02 = fi0 * (v02 - xz * v22)
-    t10 = fi1 * (v10 - yz * v20)
-    t11 = fi1 * (v11 - yz * v21)
-    t12 = fi1 * (v12 - yz * v22)
-    a0 = (t00 * r00 + t01 * r10 + t02 * r20) * s0
-    a1 = (t00 * r01 + t01 * r11 + t02 * r21) * s1
-    a2 = (t00 * r02 + t01 * r12 + t02 * r22) * s2
-    b0 = (t10 * r00 + t11 * r10 + t12 * r20) * s0
-    b1 = (t10 * r01 + t11 * r11 + t12 * r21) * s1
-    b2 = (t10 * r02 + t11 * r12 + t12 * r22) * s2
-    B = a0 * b0 + a1 * b1 + a2 * b2
-    C = b0 * b0 + b1 * b1 + b2 * b2
-    A = a0 * a0 + a1 * a1 + a2 * a2
-    c0 = a1 * b2 - a2 * b1
-    c1 = a2 * b0 - a0 * b2
-    c2 = a0 * b1 - a1 * b0
-    det0 = c0 * c0 + c1 * c1 + c2 * c2
-    det = det0 + dil * (A + C) + dil * dil
+    e00, e01, e02, e10, e11, e12, a0, a1, a2, b0, b1, b2 = _ewa(
+        fi0, fi1, xz, yz, v00, v01, v02, v10, v11, v12, v20, v21, v22,
+        r00, r01, r02, r10, r11, r12, r20, r21, r22, s0, s1, s2)
+    A, B, C, c0, c1, c2, det0, det = _conic(a0, a1, a2, b0, b1, b2, dil)
     o = 1.0 / (1.0 + tl.exp(-_f64(logits, i, m)))
     if AA:
         o = o * tl.sqrt(tl.maximum(det0 / det, tl.load(cst + 5)))
