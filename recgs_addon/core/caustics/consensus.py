@@ -65,9 +65,14 @@ def project(points, view):
 
 def inside(grid: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """(H, W) bool: the ``grid_sample`` coordinates ``grid`` (1, H, W, 2) lie half a pixel or more
-    inside an image of ``height x width``, where a bilinear sample mixes its pixels only (nearer
-    the edge it mixes in the padding around them: a dark seam along the other frame's edge)."""
-    g = grid[0]
+    inside an image of ``height x width`` (:func:`within`)."""
+    return within(grid[0], height, width)
+
+
+def within(g: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(...) bool: the ``grid_sample`` coordinates ``g`` (..., 2) lie half a pixel or more inside
+    an image of ``height x width``, where a bilinear sample mixes its pixels only (nearer the
+    edge it mixes in the padding around them: a dark seam along the other frame's edge)."""
     return (g[..., 0].abs() <= 1 - 1 / width) & (g[..., 1].abs() <= 1 - 1 / height)
 
 

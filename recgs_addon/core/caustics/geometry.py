@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from ..train.coverage import DEPTH_TOL
-from .consensus import _sample, backproject, inside, project
+from .consensus import _sample, backproject, inside, project, within
 
 #: Overlap grid: pixels of a frame sampled along each side to measure what another frame sees of it.
 OVERLAP_GRID = 24
@@ -240,8 +240,8 @@ def _pair_grid(rays: torch.Tensor, e: torch.Tensor, z: torch.Tensor, vj: PassVie
     hh, ww = vj.surface.shape
     gx = 2 * (x[0] / zs) / ww - 1
     gy = 2 * (x[1] / zs) / hh - 1
-    ok = (gx.abs() <= 1 - 1 / ww) & (gy.abs() <= 1 - 1 / hh) & (zj > 1e-6)   # as consensus.inside
-    return torch.stack([gx, gy], -1), ok
+    grid = torch.stack([gx, gy], -1)
+    return grid, within(grid, hh, ww) & (zj > 1e-6)
 
 
 def points_depth(viewmat: torch.Tensor, K: torch.Tensor, height: int, width: int, points: torch.Tensor) -> torch.Tensor:

@@ -27,6 +27,8 @@ SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
          -1.0925484305920792, 0.5462742152960396)
 SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
          -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+#: Every SH constant in one tuple (C0, C1, C2[5], C3[7]): what the rasterizer's kernels read.
+SH_CONSTANTS = (SH_C0, SH_C1, *SH_C2, *SH_C3)
 #: Initial opacity of Gaussians made from sparse points (INRIA uses 0.1).
 INIT_OPACITY = 0.1
 #: Neighbours averaged for the initial scale (INRIA: mean squared distance to 3 nearest).

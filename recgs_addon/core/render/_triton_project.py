@@ -1,20 +1,26 @@
-"""Triton kernels per Gaussian for the GPU path: projection and SH colour of the visible rows,
-forward and backward, the twins of numba's (:mod:`._numba_project`: the same float64 formulas,
-the SH basis in float32 as model/sh.py evaluates it). One program takes ``BLOCK`` Gaussians;
-each Gaussian is a lane, so there is nothing to reduce and no atomics. Used through
-:class:`.triton_kernels.TritonKernels`.
+"""Triton kernels per Gaussian for the GPU path: culling, binning, and projection and SH colour
+of the visible rows forward and backward, the twins of numba's (:mod:`._numba_project`: the
+same float64 formulas, the SH basis in float32 as model/sh.py evaluates it). One program takes
+``BLOCK`` Gaussians; each Gaussian is a lane, so there is nothing to reduce and no atomics.
+Used through :class:`.triton_kernels.TritonKernels`; Triton is imported here, once.
 
-Constants come in ``cst`` (float64, :mod:`._numba_project`'s order: near, dilation, frustum
+Constants come in ``cst`` (float64, ``projection.kernel_constants``: near, dilation, frustum
 clamp, alpha_min, quaternion eps^2, AA ratio floor, ...), the viewmat (16), intrinsics (9),
 camera centre (3) and SH constants (14: C0, C1, C2[5], C3[7]) as float64 arrays on the device.
 """
 from __future__ import annotations
 
-try:  # see triton_kernels.py
+import os
+
+# fused multiply-adds in the kernels (Triton's default so far; saying so silences its warning)
+os.environ.setdefault("TRITON_DEFAULT_FP_FUSION", "1")
+try:  # Triton: with CUDA builds of torch; on a CPU-only machine only for its interpreter
     import triton
     import triton.language as tl
-except Exception:  # noqa: BLE001
-    triton, tl = None, None
+except Exception as _exc:  # noqa: BLE001 - missing or broken: the eager path stays
+    triton, tl, _IMPORT_ERROR = None, None, _exc
+else:
+    _IMPORT_ERROR = None
 
 
 def _jit(fn):

@@ -21,9 +21,10 @@ class _Kernels(NamedTuple):
     #: numba's whole-view kernels (:class:`.numba_kernels.NumbaKernels`): they replace the
     #: per-chunk ones of :mod:`.chunks` for float32 renders (float64 ones take the eager kernels)
     numba: object = None
-    #: Triton's GPU compositing kernels (:class:`.triton_kernels.TritonKernels`): they replace
-    #: the per-chunk ones of :mod:`.chunks`; projection and colour stay eager torch on the device
-    triton: object = None
+    #: True: a float32 render takes Triton's kernels for the whole view
+    #: (:func:`.rasterizer._render_triton`) where they load for its device; the per-chunk ones
+    #: of :mod:`.chunks` stay for the eager path it falls back to
+    triton: bool = False
 
 
 _KERNEL_CACHE: dict = {}

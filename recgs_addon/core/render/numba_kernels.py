@@ -122,20 +122,16 @@ class NumbaKernels:
     """The loaded kernels, with numpy-side wrappers (float32 inputs)."""
 
     def __init__(self, impl, amin: float, amax: float, t_min: float) -> None:
-        from . import projection as pj
         from ..model import gaussians as gs
         self.impl = impl
         self.consts = (np.float32(amin), np.float32(amax), np.float32(t_min))
-        # what _numba_impl's per-Gaussian kernels read from ``cst`` (near is set per call)
-        self.proj_consts = np.array([0.0, pj.COV2D_DILATION, pj.FRUSTUM_CLAMP, pj.ALPHA_MIN,
-                                     pj.QUAT_EPS ** 2, pj.AA_RATIO_EPS, pj.BIN_MARGIN_REL,
-                                     pj.BIN_MARGIN_ABS, pj.MAX_RADIUS], np.float64)
-        self.shc = np.array([gs.SH_C0, gs.SH_C1, *gs.SH_C2, *gs.SH_C3], np.float64)
+        self.shc = np.array(gs.SH_CONSTANTS, np.float64)
 
-    def _cst(self, near: float):
-        c = self.proj_consts.copy()
-        c[0] = near
-        return c
+    @staticmethod
+    def _cst(near: float):
+        """What the per-Gaussian kernels read from ``cst`` (projection.kernel_constants)."""
+        from . import projection as pj
+        return np.array(pj.kernel_constants(near), np.float64)
 
     @staticmethod
     def _tile_cuts(tile_start) -> list:

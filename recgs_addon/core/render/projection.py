@@ -291,12 +291,9 @@ def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, wid
         info = _maybe_compiled(_cull_rows, compiled)(
             *(x.detach().index_select(0, cand).to(f64) for x in (means, log_scales, quats, logit_opacities)),
             vm, Kd, width, height, near, antialiased)
-        ok = info[:, 0] > 0
         radii = torch.zeros(means.shape[0], dtype=torch.int32, device=means.device)
-        radii[cand] = torch.where(ok, torch.ceil(info[:, 13]), torch.zeros_like(info[:, 13])).to(torch.int32)
-        vis = torch.nonzero(ok).squeeze(1)
-        # cand is increasing, so the stable sort still breaks depth ties by Gaussian index
-        vis = vis.index_select(0, torch.sort(info[:, 1].index_select(0, vis), stable=True).indices)
+        vis, drawn_radii = drawn_in_depth_order(info)   # cand is increasing: ties still by index
+        radii[cand] = drawn_radii
         info = info.index_select(0, vis)
         ids = cand.index_select(0, vis)
 
@@ -314,6 +311,24 @@ def project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K, wid
 
 def _index_rows(x: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
     return x.index_select(0, ids)
+
+
+def drawn_in_depth_order(info: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """From culling columns ``info`` (n, 14) (``_cull_rows``'): (the rows drawn, in depth order,
+    ties by row (a stable sort): (V,) int64; each row's radius in pixels, 0 = culled: (n,) int32)."""
+    ok = info[:, 0] > 0
+    radii = torch.where(ok, torch.ceil(info[:, 13]), torch.zeros_like(info[:, 13])).to(torch.int32)
+    vis = torch.nonzero(ok).squeeze(1)
+    return vis.index_select(0, torch.sort(info[:, 1].index_select(0, vis), stable=True).indices), radii
+
+
+def kernel_constants(near: float) -> list[float]:
+    """The constants numba's and Triton's per-Gaussian kernels read (their ``cst``, in this
+    order): near, dilation, frustum clamp, alpha_min, quaternion eps^2, AA ratio floor, binning
+    margins (relative, absolute), max radius. Passed, not frozen into the kernels, so that a
+    cached kernel never holds stale values."""
+    return [float(near), COV2D_DILATION, FRUSTUM_CLAMP, ALPHA_MIN, QUAT_EPS ** 2, AA_RATIO_EPS,
+            BIN_MARGIN_REL, BIN_MARGIN_ABS, float(MAX_RADIUS)]
 
 
 def camera_centre(viewmat: torch.Tensor) -> torch.Tensor:

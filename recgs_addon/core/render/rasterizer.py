@@ -44,7 +44,7 @@ from .chunks import ALPHA_MAX, T_MIN, _chunk_backward, _chunk_forward
 from .composite import _Composite
 from .kernels import _KERNEL_CACHE, _Kernels, _compiled_kernels, _sh_fn, _smoke_test
 from .numba_path import _CompositeNumba, _ProjectNumba
-from .projection import ALPHA_MIN, _index_rows, camera_centre, project_gaussians
+from .projection import ALPHA_MIN, _index_rows, camera_centre, drawn_in_depth_order, project_gaussians
 from .tiles import _Plan, _build_plan
 from .triton_path import _CompositeTriton, _ProjectTriton
 
@@ -141,14 +141,46 @@ def get_kernels(compiled: Optional[bool]) -> _Kernels:
 
 
 def _triton_kernels(device: torch.device):
-    """Triton's compositing kernels for tensors on ``device`` (compiled for a CUDA device, in
-    the interpreter for CPU tensors), or None with a warning, once: the eager path then."""
+    """Triton's kernels (:class:`.triton_kernels.TritonKernels`) for tensors on ``device``
+    (compiled for a CUDA device, in the interpreter for CPU tensors), or None with a warning,
+    once: the eager path then."""
     from . import triton_kernels
     tk = triton_kernels.load(ALPHA_MIN, ALPHA_MAX, T_MIN, device=device.type)
     if tk is None and "warned_triton" not in _KERNEL_CACHE:
         warnings.warn(f"Triton kernels unavailable ({triton_kernels.error()!r}); using the eager rasterizer")
         _KERNEL_CACHE["warned_triton"] = True
     return tk
+
+
+def _flat_plan(width: int, height: int, ts: int, n_vis: int, tile_start, rows, weights) -> _Plan:
+    """The plan of a whole-view path (numba's, Triton's): no chunks, no padding; ``rows`` (M,)
+    int32, the visible row of each intersection in (tile, depth) order, ``tile_start``
+    (n_tiles + 1,) int64 each tile's offset into them."""
+    plan = _Plan(width, height, ts, -(-width // ts), -(-height // ts), n_vis)
+    plan.tile_start, plan.isect_rows = tile_start, rows
+    plan.intersections = int(rows.shape[0])
+    plan.pairs = plan.intersections * ts * ts
+    plan.weights = weights
+    return plan
+
+
+def _screen(n: int, ids, m2d, colour, depth):
+    """The compositing's values (V, 5) (rgb, depth, 1) and the screen positions of every
+    Gaussian (N, 2) (0 where culled; its ``.grad`` kept for density control)."""
+    values = torch.cat([colour, depth.unsqueeze(1), torch.ones(ids.shape[0], 1, device=ids.device)], dim=1)
+    means2d = torch.zeros(n, 2, device=ids.device).index_copy(0, ids, m2d)
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    return values, means2d
+
+
+def _flat_output(acc, background, means2d, radii, plan: _Plan, path: str) -> RenderOutput:
+    """A whole-view path's accumulated (H, W, 5) image as :class:`RenderOutput`."""
+    alpha = acc[..., 4]
+    rgb = acc[..., 0:3] + (1.0 - alpha).unsqueeze(-1) * background
+    stats = dict(visible=plan.n_vis, intersections=plan.intersections, pairs=plan.pairs,
+                 chunks=0, compiled=False, path=path)
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=acc[..., 3], means2d=means2d, radii=radii, stats=stats)
 
 
 def _render_numba(nk, means, log_scales, quats, logit_opacities, blocks, viewmat, K, width: int,
@@ -167,29 +199,19 @@ def _render_numba(nk, means, log_scales, quats, logit_opacities, blocks, viewmat
                                   width, height, near, antialiased)
     ids = torch.from_numpy(ids_np)
     ts = tile_size
-    plan = _Plan(width, height, ts, -(-width // ts), -(-height // ts), int(ids.shape[0]))
-    tile_start, rows = nk.bin(info, ids_np, ts, plan.tiles_x, plan.tiles_x * plan.tiles_y)
-    plan.tile_start, plan.isect_rows = torch.from_numpy(tile_start), torch.from_numpy(rows)
-    plan.intersections = int(rows.shape[0])
-    plan.pairs = plan.intersections * ts * ts
-    plan.weights = weights
+    tiles_x = -(-width // ts)
+    tile_start, rows = nk.bin(info, ids_np, ts, tiles_x, tiles_x * -(-height // ts))
+    plan = _flat_plan(width, height, ts, int(ids.shape[0]), torch.from_numpy(tile_start), torch.from_numpy(rows),
+                      weights)
 
     sh_vis = torch.cat([gather(b, ids) for b in blocks if b.shape[1]], 1).to(torch.float32)
     campos = camera_centre(torch.from_numpy(vm)).numpy()
     setup = (nk, sh_degree, vm, Kd, campos, width, height, near, antialiased)
     m2d, geo, depth, colour, pos64 = _ProjectNumba.apply(
         *(gather(x, ids) for x in params), sh_vis, setup)
-    values = torch.cat([colour, depth.unsqueeze(1), torch.ones(ids.shape[0], 1)], dim=1)
-    means2d = torch.zeros(n, 2).index_copy(0, ids, m2d)
-    if means2d.requires_grad:
-        means2d.retain_grad()
+    values, means2d = _screen(n, ids, m2d, colour, depth)
     acc = _CompositeNumba.apply(means2d, geo, values, pos64, ids, plan, nk)
-    alpha = acc[..., 4]
-    rgb = acc[..., 0:3] + (1.0 - alpha).unsqueeze(-1) * background
-    stats = dict(visible=int(ids.shape[0]), intersections=plan.intersections, pairs=plan.pairs,
-                 chunks=0, compiled=False, path="numba")
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=acc[..., 3], means2d=means2d,
-                        radii=torch.from_numpy(radii), stats=stats)
+    return _flat_output(acc, background, means2d, torch.from_numpy(radii), plan, "numba")
 
 
 def _render_triton(tk, means, log_scales, quats, logit_opacities, blocks, viewmat, K, width: int,
@@ -207,32 +229,18 @@ def _render_triton(tk, means, log_scales, quats, logit_opacities, blocks, viewma
     view = tk.view_arrays(vm, K.detach().to(device=means.device, dtype=f64), camera_centre(vm), near)
     with torch.no_grad():
         info = tk.cull(tuple(x.detach().contiguous() for x in params), view, width, height, antialiased)
-        ok = info[:, 0] > 0
-        radii = torch.where(ok, torch.ceil(info[:, 13]), torch.zeros_like(info[:, 13])).to(torch.int32)
-        vis = torch.nonzero(ok).squeeze(1)
-        # nonzero is increasing, so the stable sort breaks depth ties by Gaussian index
-        ids = vis.index_select(0, torch.sort(info[:, 1].index_select(0, vis), stable=True).indices)
+        ids, radii = drawn_in_depth_order(info)
         info = info.index_select(0, ids).contiguous()
     sh_vis = torch.cat([gather(b, ids) for b in blocks if b.shape[1]], 1)
     m2d, geo, depth, colour, pos64 = _ProjectTriton.apply(
         *(gather(x, ids) for x in params), sh_vis, (tk, sh_degree, view, width, height, antialiased))
-    values = torch.cat([colour, depth.unsqueeze(1), torch.ones(ids.shape[0], 1, device=means.device)], dim=1)
-    means2d = torch.zeros(n, 2, device=means.device).index_copy(0, ids, m2d)
-    if means2d.requires_grad:
-        means2d.retain_grad()
+    values, means2d = _screen(n, ids, m2d, colour, depth)
     ts = TRITON_TILE_SIZE
-    plan = _Plan(width, height, ts, -(-width // ts), -(-height // ts), int(ids.shape[0]))
-    plan.tile_start, plan.isect_rows = tk.bin(info, ts, plan.tiles_x, plan.tiles_x * plan.tiles_y)
-    plan.intersections = int(plan.isect_rows.shape[0])
-    plan.pairs = plan.intersections * ts * ts
-    plan.weights = weights
+    tiles_x = -(-width // ts)
+    plan = _flat_plan(width, height, ts, int(ids.shape[0]), *tk.bin(info, ts, tiles_x, tiles_x * -(-height // ts)),
+                      weights)
     acc = _CompositeTriton.apply(means2d, geo[:, :3], geo[:, 3], values, pos64, ids, plan, tk)
-    alpha = acc[..., 4]
-    rgb = acc[..., 0:3] + (1.0 - alpha).unsqueeze(-1) * background
-    stats = dict(visible=int(ids.shape[0]), intersections=plan.intersections, pairs=plan.pairs,
-                 chunks=0, compiled=False, path="triton")
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=acc[..., 3], means2d=means2d,
-                        radii=radii, stats=stats)
+    return _flat_output(acc, background, means2d, radii, plan, "triton")
 
 
 # ----------------------------------------------------------------------------------------
@@ -290,6 +298,8 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
     per-Gaussian projection is always float64. Gradients reach every input through
     ``loss.backward()``; see :class:`RenderOutput` for the outputs and ``means2d.grad``.
     """
+    if not near > 0:
+        raise ValueError(f"near must be > 0, got {near}")
     dtype = means.dtype
     n = means.shape[0]
     kern = get_kernels(compiled)
@@ -302,10 +312,9 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
 
     if gather is None:
         gather = _index_rows
-    if kern.numba is not None and means.device.type == "cpu" and all(x.dtype == torch.float32 for x in
-                                      (means, log_scales, quats, logit_opacities)):
-        if not near > 0:
-            raise ValueError(f"near must be > 0, got {near}")
+    # the kernels are float32 (float64 renders stay eager)
+    f32 = all(x.dtype == torch.float32 for x in (means, log_scales, quats, logit_opacities))
+    if kern.numba is not None and means.device.type == "cpu" and f32:
         try:
             return _render_numba(kern.numba, means, log_scales, quats, logit_opacities, blocks,
                                  viewmat, K, width, height, sh_degree, background, antialiased,
@@ -315,13 +324,8 @@ def render(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
             numba_kernels.disable(exc)
             warnings.warn(f"numba kernels failed ({exc!r}); using the eager rasterizer")
             kern = get_kernels(False)
-    # float32 renders (float64 ones stay eager, as on numba's path: the kernels are float32)
-    tk = None
-    if kern.triton and all(x.dtype == torch.float32 for x in (means, log_scales, quats, logit_opacities)):
-        tk = _triton_kernels(means.device)
+    tk = _triton_kernels(means.device) if kern.triton and f32 else None
     if tk is not None:
-        if not near > 0:
-            raise ValueError(f"near must be > 0, got {near}")
         return _render_triton(tk, means, log_scales, quats, logit_opacities, blocks, viewmat, K, width,
                               height, sh_degree, background, antialiased, near, gather, weights)
     proj = project_gaussians(means, log_scales, quats, logit_opacities, viewmat, K,

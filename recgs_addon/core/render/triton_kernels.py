@@ -1,5 +1,6 @@
-"""The rasterizer's compositing as fused GPU kernels in Triton: one program a tile, forward
-and backward, nothing kept per (pixel, Gaussian) pair.
+"""The GPU path's kernels in Triton and their launches (:class:`TritonKernels`): the
+compositing here, one program a tile, forward and backward, nothing kept per (pixel,
+Gaussian) pair; culling, binning and projection + SH colour in :mod:`._triton_project`.
 
 Triton ships with the CUDA builds of torch (``pip install torch`` on a machine with an NVIDIA
 GPU brings it), compiles its kernels itself and needs no C++ compiler or CUDA toolkit on the
@@ -25,15 +26,10 @@ from typing import Optional
 
 import torch
 
-# fused multiply-adds in the kernels (Triton's default so far; saying so silences its warning)
-os.environ.setdefault("TRITON_DEFAULT_FP_FUSION", "1")
-try:  # Triton: with CUDA builds of torch; on a CPU-only machine only for its interpreter
-    import triton
-    import triton.language as tl
-except Exception as _exc:  # noqa: BLE001 - missing or broken: the eager path stays
-    triton, tl, _IMPORT_ERROR = None, None, _exc
-else:
-    _IMPORT_ERROR = None
+from ..model.gaussians import SH_CONSTANTS
+from .projection import kernel_constants
+
+from ._triton_project import _IMPORT_ERROR, _jit, tl, triton
 
 _STATE: dict = {}
 #: Values a Gaussian carries into the compositing at most (rgb, depth, 1 and spares): the
@@ -43,11 +39,10 @@ _MAX_VALUES = 8
 _PROJECT_BLOCK = 128
 
 
-def _forward_kernel(tile_start, rows, pos, geo, vals, out, last, tiles_x, hp, wp, amin, amax, tmin,
-                    TS: tl.constexpr, C: tl.constexpr, CB: tl.constexpr):
-    """One tile: front-to-back over its list. Writes ``out`` (C, Hp, Wp), the accumulated
-    ``sum_i v_i alpha_i T_i``, and ``last`` (Hp, Wp) int32, the entries a pixel went through
-    before it stopped."""
+@_jit
+def _tile(tile_start, tiles_x, wp, TS: tl.constexpr):
+    """This program's tile: its list's range in ``rows`` (s0, s1), its centre (cx, cy) (float64),
+    its pixels' offsets from it (float32) and their index in a (Hp, Wp) image."""
     t = tl.program_id(0)
     s0 = tl.load(tile_start + t)
     s1 = tl.load(tile_start + t + 1)
@@ -58,6 +53,35 @@ def _forward_kernel(tile_start, rows, pos, geo, vals, out, last, tiles_x, hp, wp
     p = tl.arange(0, TS * TS)
     pxl = (p % TS).to(tl.float32) + (0.5 - 0.5 * TS)
     pyl = (p // TS).to(tl.float32) + (0.5 - 0.5 * TS)
+    pix = (ty * TS + p // TS) * wp + tx * TS + p % TS
+    return s0, s1, cx, cy, pxl, pyl, pix
+
+
+@_jit
+def _falloff(rows, pos, geo, k, cx, cy, pxl, pyl):
+    """Entry k of the list: its Gaussian's row, conic factor (l11, l21, l22) and opacity, the
+    pixels' offsets from its centre, the whitened offsets and the falloff exp(-d^T S^-1 d / 2)."""
+    r = tl.load(rows + k).to(tl.int64)
+    mx = (tl.load(pos + 2 * r) - cx).to(tl.float32)
+    my = (tl.load(pos + 2 * r + 1) - cy).to(tl.float32)
+    l11 = tl.load(geo + 4 * r)
+    l21 = tl.load(geo + 4 * r + 1)
+    l22 = tl.load(geo + 4 * r + 2)
+    o = tl.load(geo + 4 * r + 3)
+    dx = pxl - mx
+    dy = pyl - my
+    p1 = l11 * dx + l21 * dy
+    p2 = l22 * dy
+    g = tl.exp(-0.5 * (p1 * p1 + p2 * p2))
+    return r, l11, l21, l22, o, dx, dy, p1, p2, g
+
+
+def _forward_kernel(tile_start, rows, pos, geo, vals, out, last, tiles_x, hp, wp, amin, amax, tmin,
+                    TS: tl.constexpr, C: tl.constexpr, CB: tl.constexpr):
+    """One tile: front-to-back over its list. Writes ``out`` (C, Hp, Wp), the accumulated
+    ``sum_i v_i alpha_i T_i``, and ``last`` (Hp, Wp) int32, the entries a pixel went through
+    before it stopped."""
+    s0, s1, cx, cy, pxl, pyl, pix = _tile(tile_start, tiles_x, wp, TS)
     ch = tl.arange(0, CB)
     T = tl.full((TS * TS,), 1.0, tl.float32)
     live = tl.full((TS * TS,), 1.0, tl.float32)
@@ -66,18 +90,7 @@ def _forward_kernel(tile_start, rows, pos, geo, vals, out, last, tiles_x, hp, wp
     k = s0
     n_live = TS * TS
     while (k < s1) & (n_live > 0):
-        r = tl.load(rows + k).to(tl.int64)
-        mx = (tl.load(pos + 2 * r) - cx).to(tl.float32)
-        my = (tl.load(pos + 2 * r + 1) - cy).to(tl.float32)
-        l11 = tl.load(geo + 4 * r)
-        l21 = tl.load(geo + 4 * r + 1)
-        l22 = tl.load(geo + 4 * r + 2)
-        o = tl.load(geo + 4 * r + 3)
-        dx = pxl - mx
-        dy = pyl - my
-        p1 = l11 * dx + l21 * dy
-        p2 = l22 * dy
-        g = tl.exp(-0.5 * (p1 * p1 + p2 * p2))
+        r, l11, l21, l22, o, dx, dy, p1, p2, g = _falloff(rows, pos, geo, k, cx, cy, pxl, pyl)
         alpha = tl.minimum(o * g, amax)
         t_next = T * (1.0 - alpha)
         keep = (alpha >= amin) & (live > 0.0)
@@ -92,9 +105,6 @@ def _forward_kernel(tile_start, rows, pos, geo, vals, out, last, tiles_x, hp, wp
         acc += w[:, None] * v[None, :]
         n_live = tl.sum(alive.to(tl.int32), axis=0)
         k += 1
-    y = ty * TS + p // TS
-    x = tx * TS + p % TS
-    pix = y * wp + x
     tl.store(out + ch[None, :] * (hp * wp) + pix[:, None], acc, mask=ch[None, :] < C)
     tl.store(last + pix, cnt)
 
@@ -106,20 +116,8 @@ def _backward_kernel(tile_start, rows, pos, geo, vals, out, last, g_out, d_isect
     l21, l22, opacity, the C values and, with ``WEIGHTS``, the blending weight (the sum of the
     intersection's ``alpha T`` over the tile's pixels). Rows behind every pixel's stop stay as
     they were (zeros)."""
-    t = tl.program_id(0)
-    s0 = tl.load(tile_start + t)
-    s1 = tl.load(tile_start + t + 1)
-    ty = t // tiles_x
-    tx = t - ty * tiles_x
-    cx = (tx * TS).to(tl.float64) + 0.5 * TS
-    cy = (ty * TS).to(tl.float64) + 0.5 * TS
-    p = tl.arange(0, TS * TS)
-    pxl = (p % TS).to(tl.float32) + (0.5 - 0.5 * TS)
-    pyl = (p // TS).to(tl.float32) + (0.5 - 0.5 * TS)
+    s0, s1, cx, cy, pxl, pyl, pix = _tile(tile_start, tiles_x, wp, TS)
     ch = tl.arange(0, CB)
-    y = ty * TS + p // TS
-    x = tx * TS + p % TS
-    pix = y * wp + x
     cmask = ch[None, :] < C
     G = tl.load(g_out + ch[None, :] * (hp * wp) + pix[:, None], mask=cmask, other=0.0)
     total = tl.sum(G * tl.load(out + ch[None, :] * (hp * wp) + pix[:, None], mask=cmask, other=0.0), axis=1)
@@ -129,20 +127,9 @@ def _backward_kernel(tile_start, rows, pos, geo, vals, out, last, g_out, d_isect
     done = tl.zeros((TS * TS,), tl.float32)
     for j in range(0, n_k):
         k = s0 + j
-        r = tl.load(rows + k).to(tl.int64)
-        mx = (tl.load(pos + 2 * r) - cx).to(tl.float32)
-        my = (tl.load(pos + 2 * r + 1) - cy).to(tl.float32)
-        l11 = tl.load(geo + 4 * r)
-        l21 = tl.load(geo + 4 * r + 1)
-        l22 = tl.load(geo + 4 * r + 2)
-        o = tl.load(geo + 4 * r + 3)
+        r, l11, l21, l22, o, dx, dy, p1, p2, g = _falloff(rows, pos, geo, k, cx, cy, pxl, pyl)
         v = tl.load(vals + r * C + ch, mask=ch < C, other=0.0)
         gv = tl.sum(G * v[None, :], axis=1)
-        dx = pxl - mx
-        dy = pyl - my
-        p1 = l11 * dx + l21 * dy
-        p2 = l22 * dy
-        g = tl.exp(-0.5 * (p1 * p1 + p2 * p2))
         oa = o * g
         alpha = tl.minimum(oa, amax)
         om = 1.0 - alpha
@@ -174,8 +161,6 @@ class TritonKernels:
 
     def __init__(self, amin: float, amax: float, tmin: float):
         from . import _triton_project
-        from . import projection as pj
-        from ..model import gaussians as gs
         self._fwd = triton.jit(_forward_kernel)
         self._bwd = triton.jit(_backward_kernel)
         self._proj_fwd = _triton_project._forward_kernel
@@ -184,10 +169,6 @@ class TritonKernels:
         self._bin = _triton_project._bin_kernel
         self.interpret = interpreting()
         self.amin, self.amax, self.tmin = float(amin), float(amax), float(tmin)
-        # what the per-Gaussian kernels read from ``cst`` (numba's order; near is set per call)
-        self._proj_consts = [0.0, pj.COV2D_DILATION, pj.FRUSTUM_CLAMP, pj.ALPHA_MIN, pj.QUAT_EPS ** 2,
-                             pj.AA_RATIO_EPS, pj.BIN_MARGIN_REL, pj.BIN_MARGIN_ABS, pj.MAX_RADIUS]
-        self._shc = [gs.SH_C0, gs.SH_C1, *gs.SH_C2, *gs.SH_C3]
         self._constants: dict = {}
 
     def view_arrays(self, vm, K, campos, near: float) -> tuple:
@@ -197,8 +178,8 @@ class TritonKernels:
         f64 = torch.float64
         key = (float(near), str(dev))
         if key not in self._constants:      # made once: no host-to-device copy a view
-            self._constants[key] = (torch.tensor(self._shc, dtype=f64, device=dev),
-                                    torch.tensor([float(near)] + self._proj_consts[1:], dtype=f64, device=dev))
+            self._constants[key] = (torch.tensor(SH_CONSTANTS, dtype=f64, device=dev),
+                                    torch.tensor(kernel_constants(near), dtype=f64, device=dev))
         shc, cst = self._constants[key]
         return (vm.detach().to(f64).contiguous(), K.detach().to(f64).contiguous(),
                 campos.detach().to(f64).contiguous(), shc, cst)
