@@ -976,6 +976,26 @@ def test_a_job_measures_what_an_output_image_takes_to_write(small_scene, tmp_pat
     assert list(tmp_path.iterdir()) == []
 
 
+def test_the_write_probe_does_not_count_a_formats_first_write(small_scene, tmp_path, monkeypatch):
+    """A format's first write in a process loads its libraries (slow on a fresh install); the
+    finishing writes many files after it, so the probe times the second."""
+    from recgs_addon.commands.train import _write_seconds
+    from recgs_addon.core.io import images
+
+    seen = set()
+    write = images.write_image
+
+    def slow_first(path, image, *a, **k):
+        if path.suffix not in seen:
+            seen.add(path.suffix)
+            time.sleep(0.5)
+        return write(path, image, *a, **k)
+    monkeypatch.setattr(images, "write_image", slow_first)
+    tr = make_trainer(small_scene, tiny_cfg())
+    assert 0.0 < _write_seconds(tmp_path, tr) < 0.25
+    assert seen == {".png", ".exr"} and list(tmp_path.iterdir()) == []
+
+
 def test_progress_says_the_share_done_from_the_eta_or_the_time_limit(small_scene):
     """The share done a progress report carries (the sidebar's bar shows it as it is): before a
     step is timed, the time limit's share; then elapsed over elapsed plus the ETA."""

@@ -262,21 +262,26 @@ def _fitting_side(trainer) -> Optional[dict]:
 
 def _write_seconds(out: Path, trainer) -> float:
     """Seconds one output image takes to write here: a training photo written as PNG and as
-    EXR into ``out`` (then removed), the mean of the two. Writing is what the finishing does
-    most of after rendering (five files a training view with the water and caustics)."""
+    EXR into ``out`` (then removed), the mean of the two, each timed at its second write (the
+    first loads the format's libraries, once a process: on a fresh install it took long enough
+    to reserve the limit's largest share). Writing is what the finishing does most of after
+    rendering (five files a training view with the water and caustics)."""
     from ..core.io.images import write_image
 
     if not trainer.data.train_ids:
         return 0.0
     image = trainer.data.view(trainer.data.train_ids[0], 1)[1].cpu().numpy()
-    t = time.perf_counter()
+    spent = 0.0
     for ext in ("png", "exr"):
         probe = out / f".write-probe.{ext}"
         try:
             write_image(probe, image)
+            t = time.perf_counter()
+            write_image(probe, image)
+            spent += time.perf_counter() - t
         finally:
             probe.unlink(missing_ok=True)
-    return (time.perf_counter() - t) / 2
+    return spent / 2
 
 
 def _reading_progress(t0: float):
