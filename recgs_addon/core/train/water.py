@@ -319,7 +319,7 @@ class MediumMixin:
         self._held: Optional[torch.Tensor] = None   # the water's numbers kept from the points
         if c.medium == "off":
             return
-        obs = self.point_observations() if hasattr(self, "point_observations") else _observations(self.data)
+        obs = _observations(self.data)
         prof = range_profile(obs)
         self.medium_info.update(prof)
         if not prof["median_range"] > 0:
@@ -330,8 +330,7 @@ class MediumMixin:
                                           f"view x{prof['range_spread']:.2f}, below x{MIN_RANGE_SPREAD}): water "
                                           "cannot be told from the seabed's colour")
             return
-        if "colour" not in obs:
-            _sample_colours(self.data, obs)
+        _sample_colours(self.data, obs)
         self._unlit(obs)
         # under caustics the fit measures the light's grey gain instead of taking it for noise
         moving = bool((getattr(self, "light", None) or {}).get("caustics"))
