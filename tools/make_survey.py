@@ -76,7 +76,7 @@ from survey_light import CAUSTIC_PATTERNS, caustic_gain, caustic_shots, light_di
 from survey_materials import CausticRig, _bpy, add_caustic_images  # noqa: E402
 from survey_scene import (add_camera, build_scene, configure_render, log, render_exr,  # noqa: E402
                           scene_triangles, set_camera_pose)
-from survey_lamp import lamp_gain  # noqa: E402
+from survey_lamp import LAMP_OFFSET, lamp_gain  # noqa: E402
 from survey_water import WATER_TYPES, apply_water, ray_lengths, water_coefficients  # noqa: E402
 
 
@@ -529,7 +529,8 @@ def lamp_light(args, cam, depth: np.ndarray) -> np.ndarray:
         return np.repeat(((1.0 + args.vignette * rho2) ** -2)[..., None], 3, -1)
     att = args.water_model["attenuation_per_m"] if args.water_model is not None else (0.0, 0.0, 0.0)
     return lamp_gain(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, depth, lamp_range(args),
-                     args.lamp_beam, args.lamp_tilt, attenuation=att, vignette=args.vignette)
+                     args.lamp_beam, args.lamp_tilt, offset=getattr(args, "lamp_offset", LAMP_OFFSET),
+                     attenuation=att, vignette=args.vignette)
 
 
 def lamp_range(args) -> float:

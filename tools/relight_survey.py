@@ -23,6 +23,7 @@ import math
 import shutil
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -32,19 +33,14 @@ for p in (REPO_ROOT, TOOLS_DIR):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from survey_lamp import LAMP_OFFSET, lamp_gain  # noqa: E402
+from make_survey import lamp_light, lamp_range, linear_to_srgb8, write_png  # noqa: E402
+from survey_lamp import LAMP_OFFSET  # noqa: E402
 from survey_water import WATER_TYPES, apply_water, ray_lengths, water_coefficients  # noqa: E402
 
 
 def srgb8_to_linear(img: np.ndarray) -> np.ndarray:
     s = np.asarray(img, np.float64) / 255.0
     return np.where(s <= 0.04045, s / 12.92, ((s + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb8(rgb: np.ndarray) -> np.ndarray:
-    c = np.clip(np.asarray(rgb, np.float64), 0.0, 1.0)
-    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
-    return np.round(s * 255.0).astype(np.uint8)
 
 
 def _read(path: Path) -> np.ndarray:
@@ -54,13 +50,6 @@ def _read(path: Path) -> np.ndarray:
     if px is None or buf.has_error:
         raise RuntimeError(f"cannot read {path}: {buf.geterror()}")
     return np.asarray(px)[..., :3]
-
-
-def _write(path: Path, rgb8: np.ndarray) -> None:
-    import OpenImageIO as oiio
-    buf = oiio.ImageBuf(np.ascontiguousarray(rgb8))
-    if not buf.write(str(path)):
-        raise RuntimeError(f"cannot write {path}: {buf.geterror()}")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -102,8 +91,8 @@ def main(argv=None) -> int:
             shutil.copy2(src / name, out / name)
     rec = pycolmap.Reconstruction(str(src / "sparse" / "0"))
     par = meta["parameters"]
-    r0 = par["altitude"] / math.cos(math.radians(par["pitch"]))
-    att = args.water_model["attenuation_per_m"] if args.water_model is not None else (0.0, 0.0, 0.0)
+    args.altitude, args.pitch = par["altitude"], par["pitch"]   # the nominal range (lamp_range)
+    r0 = lamp_range(args)
     col_sum = {pid: np.zeros(3) for pid in rec.points3D}
     col_n = {pid: 0 for pid in rec.points3D}
     ranges = []
@@ -113,12 +102,8 @@ def main(argv=None) -> int:
         w, h = cam.width, cam.height
         depth = np.load(src / "depth" / (Path(img.name).stem + ".npy"))
         lin = srgb8_to_linear(_read(src / "clean" / img.name))
-        if args.lamp:
-            lin = lin * lamp_gain(w, h, fx, fy, cx, cy, depth, r0, args.lamp_beam, args.lamp_tilt,
-                                  offset=args.lamp_offset, attenuation=att, vignette=args.vignette)
-        elif args.vignette:
-            rho2 = ((np.arange(w) + 0.5 - cx)[None, :] ** 2 + (np.arange(h) + 0.5 - cy)[:, None] ** 2) / (0.5 * w) ** 2
-            lin = lin * ((1.0 + args.vignette * rho2) ** -2)[..., None]
+        if args.lamp or args.vignette:
+            lin = lin * lamp_light(args, SimpleNamespace(width=w, height=h, fx=fx, fy=fy, cx=cx, cy=cy), depth)
         if args.water_model is not None:
             rng = depth * ray_lengths(w, h, fx, fy, cx, cy)
             lin = apply_water(lin, rng, args.water_model)
@@ -126,7 +111,7 @@ def main(argv=None) -> int:
             if fin.size:
                 ranges.append((float(np.percentile(fin, 1)), float(np.percentile(fin, 99))))
         photo = linear_to_srgb8(lin)
-        _write(out / "images" / img.name, photo)
+        write_png(out / "images" / img.name, photo)
         for p2 in img.points2D:
             if p2.has_point3D():
                 u = min(max(int(math.floor(p2.xy[0])), 0), w - 1)
