@@ -50,8 +50,13 @@ REQ="-r requirements.txt"
 stamp=".venv/.recgs-$(cat requirements*.txt | sha256sum | cut -c1-16)-$DEV"
 if [ ! -e "$stamp" ]; then
   echo "setup: installing Python packages ($REQ) into .venv"
-  .venv/bin/python -m pip install -q --disable-pip-version-check $REQ 2>&1 \
-    | grep -v "is ignored: it is neither a file nor a directory" || true
+  # a failed install stops here (the packages already installed are kept and the next run tries again)
+  if ! .venv/bin/python -m pip install -q --disable-pip-version-check $REQ > .venv/pip.log 2>&1; then
+    grep -v "is ignored: it is neither a file nor a directory" .venv/pip.log >&2 || true
+    echo "setup: pip could not install $REQ (its messages above, all of them in .venv/pip.log)" >&2
+    exit 1
+  fi
+  grep -v "is ignored: it is neither a file nor a directory" .venv/pip.log || true
   .venv/bin/python -c "import bpy, numpy, torch, pycolmap, OpenImageIO" \
     || { echo "setup: the Python packages did not install correctly" >&2; exit 1; }
   touch "$stamp"
