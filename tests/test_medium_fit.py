@@ -43,6 +43,24 @@ def test_noise_free_observations_give_the_water_back_exactly():
     assert f["gain"] > 0.9
 
 
+def test_a_lamps_known_light_on_the_seabed_leaves_the_water_and_veil_right():
+    """Under a lamp the seabed is lit by a known gain (5-100 % of the beam's centre here) and the
+    veil lies in front of it: fitted with the gain, the water comes back; the colours divided by
+    the gain instead (the veil divided with them) read it far off."""
+    point, rng, _, J = _observations(water=None, seed=3)
+    lit = np.exp(np.random.default_rng(4).uniform(np.log(0.05), 0.0, point.size))
+    att, back, veil = (np.asarray(TRUE[k]) for k in ("attenuation", "backscatter", "veil"))
+    y = lit[:, None] * J[point] * np.exp(-att * rng[:, None]) + 3 * veil * (1 - np.exp(-back * rng[:, None]))
+    n, length = int(point.max()) + 1, float(np.median(rng))
+    f = medium_fit.fit_water(point, n, rng, y, length, lit=lit)
+    assert np.allclose(f["attenuation"], att, rtol=5e-3), f["attenuation"]
+    assert np.allclose(f["J"][np.unique(point)], J[np.unique(point)], atol=5e-3)
+    divided = medium_fit.fit_water(point, n, rng, np.clip(y / lit[:, None], 0, 1), length)
+    assert np.abs(np.asarray(divided["attenuation"]) / att - 1).max() > 0.2, divided["attenuation"]
+    with pytest.raises(ValueError):
+        medium_fit.fit_water(point, n, rng, y, length, lit=lit, moving_light=True)
+
+
 def test_heavy_tailed_errors_and_noise_leave_the_attenuation_within_a_few_percent():
     """Texture and occlusion: 15 % of the observations replaced by any colour, the rest noisy."""
     point, rng, y, _ = _observations(n=800, noise=0.01, outliers=0.15, seed=1)

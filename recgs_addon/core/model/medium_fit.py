@@ -107,20 +107,23 @@ def _robust_scale(res: torch.Tensor, w: torch.Tensor) -> float:
 
 def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, length: float,
                 w: torch.Tensor | None = None, start=(0.1, 0.3, 0.0), warm: bool = False,
-                errors: bool = True) -> dict:
+                errors: bool = True, lit: torch.Tensor | None = None) -> dict:
     """One channel's water from observations ``pt`` (K,) point ids below ``n``, ranges ``r`` and
     linear colours ``y`` (K,), observation weights ``w``; ``start``: (attenuation, backscatter
     rate, veil at ``length``), ``warm``: the start is a fit's (else the rate starts at each of
     :data:`COLD_RATES` and the veil halfway to its bound). Returns the three, each point's
     colour ``J`` (n,), the robust loss with the water and without it (``J`` alone), the Huber
-    scale both are measured in, and with ``errors`` the three's Gauss-Newton variances."""
+    scale both are measured in, and with ``errors`` the three's Gauss-Newton variances.
+    ``lit`` (K,): a known gain on each observation's seabed part (a lamp on the camera:
+    ``y = lit J exp(-attenuation r) + V(r)``, the veil in front of the lit seabed), 1 without."""
     r, y = r.double(), y.double()
     w = torch.ones_like(y) if w is None else w.double()
+    lit = torch.ones_like(y) if lit is None else lit.double()
     # without water: each point's robust mean; its residuals set the scale both losses use
     h = torch.ones_like(y)
     for _ in range(IRLS_ROUNDS):
-        j0 = _point_colours(pt, n, torch.ones_like(y), y, w * h)
-        res0 = y - j0[pt]
+        j0 = _point_colours(pt, n, lit, y, w * h)
+        res0 = y - j0[pt] * lit
         scale = _robust_scale(res0, w)
         h = _huber_weights(res0, scale)
     # the veil at the median range lies between 0 and the darker colours seen (no colour is
@@ -135,7 +138,7 @@ def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, leng
 
     def parts(t):
         att, rate, v_len = t[0], torch.exp(lo + (hi - lo) * torch.sigmoid(t[1])), cap * torch.sigmoid(t[2])
-        a = torch.exp(-att * r)
+        a = lit * torch.exp(-att * r)
         z = y - v_len * _veil_curve(rate, r, length)
         return a, z
 
@@ -183,16 +186,16 @@ def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, leng
     return {"attenuation": att, "backscatter": rate, "veil_at_length": v_len,
             "J": j.float(), "loss_water": _huber_loss(res, scale, w), "loss_plain": _huber_loss(res0, scale, w),
             "scale": scale,
-            "variance": _variances(pt, n, r, y, length, w * h, res, (att, rate, v_len)) if errors else None}
+            "variance": _variances(pt, n, r, y, length, w * h, res, (att, rate, v_len), lit) if errors else None}
 
 
-def _variances(pt, n, r, y, length, wh, res, values) -> np.ndarray:
+def _variances(pt, n, r, y, length, wh, res, values, lit) -> np.ndarray:
     """(3,) Gauss-Newton variances of (attenuation, backscatter rate, veil at ``length``) at the
     fit, each point's colour projected out (variable projection's Jacobian): the residual
     variance over the information J^T W J. Where the observations do not pin a number (a point
     seen from one range pins no attenuation), its variance is infinite."""
     def residuals(t):
-        a = torch.exp(-t[0] * r)
+        a = lit * torch.exp(-t[0] * r)
         z = y - t[2] * _veil_curve(t[1], r, length)
         j = _point_colours(pt, n, a, z, wh)
         return wh.sqrt() * (z - j[pt] * a)
@@ -408,7 +411,8 @@ def unnatural(attenuation, spread=None) -> Optional[str]:
 
 
 def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray, length: float,
-              rounds: int = 0, seed: int = 0, moving_light: bool = False, natural_only: bool = False) -> dict:
+              rounds: int = 0, seed: int = 0, moving_light: bool = False, natural_only: bool = False,
+              lit: Optional[np.ndarray] = None) -> dict:
     """The water of every channel from observations (``point`` (K,) ids below ``n``, ``rng``
     (K,), ``colour_lin`` (K, 3) linear colours) and, with ``rounds`` > 0, how well they pin it.
 
@@ -426,15 +430,21 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     says whether. The plain fit and the refits then use :data:`LIGHT_SUBSET` of the
     observations (the fit under light's spread scaled to all of them). ``natural_only``: where the
     fit is unlike any natural water (:func:`unnatural` without error bars) there are no refits
-    and no ``spread`` (a run that models only natural water needs none)."""
+    and no ``spread`` (a run that models only natural water needs none). ``lit`` (K,): a known
+    grey gain on each observation's seabed part (a lamp's light; :func:`fit_channel`), not
+    with ``moving_light``."""
+    if lit is not None and moving_light:
+        raise ValueError("a known gain on the seabed and light that moves over it are not fitted together")
     pt = torch.from_numpy(np.asarray(point, np.int64))
     r = torch.from_numpy(np.asarray(rng, np.float64))
     y = torch.from_numpy(np.asarray(colour_lin, np.float64))
+    g = None if lit is None else torch.from_numpy(np.asarray(lit, np.float64))
     sub = torch.arange(len(pt))
     if moving_light and len(pt) > LIGHT_SUBSET:
         sub = torch.sort(torch.randperm(len(pt), generator=torch.Generator().manual_seed(seed + 1))
                          [:LIGHT_SUBSET]).values
-    fits = [fit_channel(pt[sub], n, r[sub], y[sub, c], length) for c in range(3)]
+    gs = None if g is None else g[sub]
+    fits = [fit_channel(pt[sub], n, r[sub], y[sub, c], length, lit=gs) for c in range(3)]
     out = _collect(fits, length)
     out["J"] = torch.stack([f["J"] for f in fits], 1).numpy()
     light = None
@@ -461,7 +471,7 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
         boot = _bootstrap(lambda w: _collect([fit_channel(pt[sub], n, r[sub], y[sub, c], length, w,
                                                           start=(f["attenuation"], f["backscatter"],
                                                                  f["veil_at_length"]),
-                                                          warm=True, errors=False)
+                                                          warm=True, errors=False, lit=gs)
                                               for c, f in enumerate(fits)], length), pt[sub], n, rounds, seed)
         # refits started from the fit cannot leave a flat valley: the spread is at least the
         # Gauss-Newton standard error (infinite where nothing pins a number)
