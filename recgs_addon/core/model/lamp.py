@@ -23,7 +23,10 @@ from __future__ import annotations
 
 from typing import Optional, Sequence
 
+import numpy as np
 import torch
+
+from .colour import linear_to_srgb
 
 #: Degree of the pattern's polynomial over the image.
 DEGREE = 4
@@ -109,3 +112,77 @@ class Lamp:
         """The standard deviation of ``log L`` over a view (how uneven the lamp lights it)."""
         with torch.no_grad():
             return float(self.log_gain(width, height, cx, cy, rng).std())
+
+
+#: Observations darker than this (linear grey) say nothing of the lamp (8-bit black, shadow).
+FIT_DARK = 1e-3
+#: Huber's threshold (log units) and the reweighting rounds of :func:`fit_to_points`.
+FIT_HUBER = 0.1
+FIT_ROUNDS = 6
+#: The ridge on the lamp's terms (per unit of weight): terms the points do not pin stay small.
+FIT_RIDGE = 1e-6
+#: Least observations (in points seen at least twice) for :func:`fit_to_points` to answer.
+FIT_MIN_OBSERVATIONS = 500
+
+
+def _within_points(A, g, pid, noise_w, ridge, rounds):
+    """Robust weighted least squares of ``g`` on the columns ``A`` with each point's own level
+    (``pid``) eliminated: coefficients and residuals."""
+    w = noise_w.copy()
+    coef = np.zeros(A.shape[1])
+    res = g - g.mean()
+    for _ in range(rounds):
+        wsum = np.bincount(pid, weights=w).clip(1e-12)
+        sums = [np.bincount(pid, weights=w * A[:, c]) for c in range(A.shape[1])]
+        Ac = A - ((np.stack(sums, -1) if sums else np.zeros((len(wsum), 0))) / wsum[:, None])[pid]
+        gc = g - (np.bincount(pid, weights=w * g) / wsum)[pid]
+        Aw = Ac * w[:, None]
+        coef = np.linalg.solve(Aw.T @ Ac + np.diag(ridge * w.sum()), Aw.T @ gc)
+        res = gc - Ac @ coef
+        w = noise_w * np.minimum(1.0, FIT_HUBER / np.maximum(np.abs(res), 1e-12))
+    return coef, res
+
+
+def fit_to_points(point, x, y, rng, grey, r0: float, start: Optional[dict] = None,
+                  rounds: int = FIT_ROUNDS) -> Optional[dict]:
+    """The lamp (its pattern terms, ``fall`` and ``attenuation``, as :class:`Lamp` takes them)
+    from sparse points seen in several views: observation ``k`` of point ``point[k]`` at
+    centred image position (``x[k]``, ``y[k]``) (half-widths), range ``rng[k]`` and linear
+    grey level ``grey[k]`` obeys ``log grey = log J_p + log L(x, r)`` (no exposure per view:
+    it would take up the range's fall-off between views). Every point's own level is
+    eliminated (each point's weighted mean taken out of both sides, which gives the exact
+    least squares of the common terms), the fit is robust (Huber's weights over ``rounds``),
+    weighted by the 8-bit noise of a log (an sRGB level ``s`` carries log noise as 1/s, so
+    dark observations count less), and the lamp's terms are kept small where the points do
+    not pin them (a ridge, :data:`FIT_RIDGE`). Every observation of every view enters, into
+    the frame's dark edges, so a narrow beam is fitted where the frames' pairs see too little
+    of it. Returns ``pattern``, ``fall``, ``attenuation``, ``spread`` (the residuals' robust
+    standard deviation, log units: the points' noise and what the lamp's terms cannot
+    follow), ``observations``, and with ``start`` (another lamp's values) ``start_spread``:
+    the same spread of that lamp's; None where fewer than
+    :data:`FIT_MIN_OBSERVATIONS` are usable."""
+    point = np.asarray(point, np.int64)
+    grey = np.asarray(grey, np.float64)
+    r = np.asarray(rng, np.float64)
+    ok = (grey > FIT_DARK) & np.isfinite(r) & (r > 1e-3 * r0)
+    if ok.any():   # points seen once carry no ratio
+        counts = np.bincount(point[ok], minlength=int(point.max()) + 1)
+        ok &= counts[point] >= 2
+    if int(ok.sum()) < FIT_MIN_OBSERVATIONS:
+        return None
+    point, grey, r = point[ok], grey[ok], r[ok]
+    xs, ys = np.asarray(x, np.float64)[ok], np.asarray(y, np.float64)[ok]
+    _, pid = np.unique(point, return_inverse=True)
+    lamp_cols = np.concatenate([np.stack([xs ** i * ys ** j for i, j in POWERS], -1),
+                                np.stack([np.log(r / r0), r - r0], -1)], -1)
+    g = np.log(grey)
+    s = linear_to_srgb(torch.from_numpy(grey)).numpy()   # the sRGB level
+    noise_w = np.minimum(1.0, (s / np.median(s)) ** 2)
+    coef, res = _within_points(lamp_cols, g, pid, noise_w, np.full(TERMS + 2, FIT_RIDGE), rounds)
+    out = {"pattern": coef[:TERMS].tolist(), "fall": float(coef[TERMS]), "attenuation": float(coef[TERMS + 1]),
+           "spread": float(1.4826 * np.median(np.abs(res))), "observations": int(len(g))}
+    if start is not None:
+        c0 = np.array(list(start["pattern"]) + [start["fall"], start["attenuation"]], np.float64)
+        _, res0 = _within_points(np.zeros((len(g), 0)), g - lamp_cols @ c0, pid, noise_w, np.zeros(0), rounds)
+        out["start_spread"] = float(1.4826 * np.median(np.abs(res0)))
+    return out

@@ -6,10 +6,13 @@ trainer what it found (``light``). With ``lamp = "auto"`` (the default) a run mo
 where that light varies by :data:`LAMP_FLOOR` or more over the frame (a lamp's cone, its fall-off
 with range, vignetting), explains :data:`LAMP_EXPLAINED` of how the frames differ, and varies
 more than the light that moves over the seabed (broad caustics'
-part the fit between frames cannot tell from a pattern); the finding's fit starts the lamp and
-training refines it. The water's
-fit to the sparse points (water.py) then sees the points' colours with the lamp taken out, so the
-lamp's fall-off with range is not taken for the water's attenuation.
+part the fit between frames cannot tell from a pattern). The lamp is then fitted to the
+sparse points' colours in every training view (core/model/lamp.py ``fit_to_points``; the
+finding's fit between frames where that fit is no better or its fall-off no lamp's), and
+training refines it, each pixel weighed as if the seabed there were evenly lit
+(:meth:`LampMixin.lamp_weight`). The water's fit to the sparse points (water.py) then takes
+the lamp's light on each point as known, the veil in front of it, so the lamp's fall-off with
+range is not taken for the water's attenuation.
 
 :class:`LampMixin` is a part of :class:`~.trainer.Trainer` (its ``cfg``, ``data`` and
 ``device``); the report reads :meth:`LampMixin.lamp_summary`.
@@ -34,6 +37,20 @@ LAMP_FLOOR = 0.15
 LAMP_EXPLAINED = 0.5
 #: Adam's learning rate for the lamp's terms in training.
 LR_LAMP = 0.002
+#: Training weighs a pixel by the inverse of what the lamp's light does to its share of the loss
+#: (an sRGB level of a seabed lit by ``L`` moves as ``L ** (1 / 2.4)`` with its colour), up to
+#: this many times a fully lit pixel's weight: the beam's dark edges teach the Gaussians as much
+#: as its centre, where their 8-bit levels still carry the seabed.
+LAMP_WEIGHT_CAP = 6.0
+#: ... and not at all where the lamp gives less than this (a white seabed there is a few 8-bit
+#: levels: the frame's corners outside a narrow beam).
+LAMP_DARKEST = 0.01
+#: The sparse points' fit of the lamp starts it where its residual spread is at most this share
+#: of the frames' fit's on the same points (a narrow beam: 0.051 against 0.107)...
+POINTS_BETTER = 0.9
+#: ... and its fall-off with range is a lamp's (the inverse square is -2): a forward-looking
+#: wreck's points, far off in open water under changing exposure, drove it to -33.
+POINTS_FALL = (-4.0, 1.0)
 #: Share of the image's width around the principal point whose sparse points give the range the
 #: lamp is normalised at (:func:`centre_range`).
 CENTRE_SHARE = 0.15
@@ -104,12 +121,64 @@ class LampMixin:
             return
         a, b = (light.get("range_coef") or [0.0, 0.0])[:2]
         self.lamp = Lamp(r0, light["pattern_coef"], a, b, device=self.device)
+        self.lamp_info["start_from"] = "frames"
+        frames = Lamp(r0, light["pattern_coef"], a, b).values()
+        fit = self._lamp_from_points(r0, frames)
+        if fit is not None:
+            self.lamp_info["points_fit"] = {k: round(fit[k], 4) if isinstance(fit[k], float) else fit[k]
+                                            for k in ("spread", "start_spread", "observations")}
+            # every sparse point's every view: the beam's edges too
+            if fit["spread"] > POINTS_BETTER * fit["start_spread"]:
+                self.lamp_info["points_fit"]["not_used"] = "it explains the points no better than the frames' fit"
+            elif not POINTS_FALL[0] <= fit["fall"] <= POINTS_FALL[1]:
+                self.lamp_info["points_fit"]["not_used"] = f"its fall-off with range ({fit['fall']:.1f}) is no lamp's"
+            else:
+                self.lamp = Lamp(r0, fit["pattern"], fit["fall"], fit["attenuation"], device=self.device)
+                self.lamp_info.update(start_from="points", frames_start=frames)
         self.lamp_optimizer = torch.optim.Adam([self.lamp.raw], lr=LR_LAMP, eps=1e-15)
         pct = 100 * (math.exp(float(light.get("camera", 0.0))) - 1)
         self.lamp_info.update(kept=True, r0=r0, start=self.lamp.values(),
                               reason=f"light fixed to the camera (a lamp's cone and fall-off, or vignetting) varies "
                                      f"by {pct:.0f} % over the frame: modelled, the Gaussians hold the seabed evenly "
                                      f"lit as the lamp lights the frame's centre at {r0:.2f} units")
+
+    def point_observations(self, colours: bool = True) -> dict:
+        """The sparse points' observations in the training views (water.py's ``_observations``)
+        and with ``colours`` their colours in the photos (``_sample_colours``, read when first
+        asked for), made once for the lamp's and the water's fits: a copy each (the water's may
+        divide its colours by the lamp)."""
+        from . import water
+        if getattr(self, "_point_obs", None) is None:
+            self._point_obs = water._observations(self.data)
+        obs = self._point_obs
+        if colours and "colour" not in obs:
+            if len(obs["point"]):
+                water._sample_colours(self.data, obs)
+            else:
+                obs["colour"] = np.zeros((0, 3), np.float32)
+        return dict(obs, colour=obs["colour"].copy()) if "colour" in obs else dict(obs)
+
+    def _lamp_from_points(self, r0: float, start: dict) -> Optional[dict]:
+        """The lamp fitted to the sparse points' colours (core/model/lamp.py ``fit_to_points``;
+        ``start``'s spread on the same points beside it), or None where too few are seen."""
+        from ..model.colour import srgb_to_linear
+        from ..model.lamp import fit_to_points
+        from .water import image_positions_of
+        obs = self.point_observations()
+        if not len(obs["point"]):
+            return None
+        grey = srgb_to_linear(torch.from_numpy(obs["colour"]).double()).mean(-1).numpy()
+        return fit_to_points(obs["point"], *image_positions_of(obs), obs["range"], grey, r0, start=start)
+
+    def lamp_weight(self, out, cam) -> torch.Tensor:
+        """(H, W) each pixel's weight in the loss under the lamp (:data:`LAMP_WEIGHT_CAP`), from
+        the render ``out``'s range; not differentiated."""
+        from ..model.medium import Medium
+        with torch.no_grad():
+            rng = Medium.range_of(out.alpha, out.depth, self.ray_len(cam))
+            log_l = self.lamp_log_gain_of(cam, rng)
+            w = torch.exp(-log_l / 2.4).clamp(max=LAMP_WEIGHT_CAP)
+            return torch.where(log_l >= math.log(LAMP_DARKEST), w, torch.zeros_like(w))
 
     def lamp_log_gain_of(self, cam, rng: torch.Tensor) -> torch.Tensor:
         """(H, W) the lamp's log gain on camera ``cam``'s pixels at range ``rng`` (H, W)."""

@@ -81,6 +81,7 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin, LampMix
         self.light = light
         self._init_lamp(light)   # light fixed to the camera, where the survey shows it (lamp.py)
         self._init_medium()   # the water, where the survey can tell it (water.py)
+        self._point_obs = None   # the points' observations both fits shared: not kept
         if gaussians is None:   # from the points' true colours (the photos' where there is no water)
             gaussians = init_from_points(data.scene.points, self.true_point_colours(), sh_degree=0)
         if len(gaussians) == 0:
@@ -227,6 +228,9 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin, LampMix
         if self.forms_image:   # fit the photos as the lamp lit them and the water showed them
             out = out._replace(rgb=self.as_seen(out, cam))
         target, weight = self.objective.target(index, img, out.rgb.detach())
+        if getattr(self, "lamp", None) is not None:   # the frame's dark parts count as if evenly lit
+            even = self.lamp_weight(out, cam)
+            weight = even if weight is None else weight * even
         keep = self.counts(index, level)   # a burned-in overlay does not count
         rgb = out.rgb
         if keep is not None:

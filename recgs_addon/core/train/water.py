@@ -114,6 +114,15 @@ def _observations(data, max_points: int = 6000) -> dict:
     return {"points": pick, "views": views, "point": cat(2, np.zeros(0, np.int64)), "range": cat(5, np.zeros(0))}
 
 
+def image_positions_of(obs: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) each observation's position in its image, centred on the principal point, in
+    half-widths (as core/model/lamp.py takes it)."""
+    if not obs["views"]:
+        return np.zeros(0), np.zeros(0)
+    return (np.concatenate([(u - cam.cx) / (0.5 * cam.width) for _, cam, _, u, _, _ in obs["views"]]),
+            np.concatenate([(v - cam.cy) / (0.5 * cam.width) for _, cam, _, _, v, _ in obs["views"]]))
+
+
 def _sample_colours(data, obs: dict) -> None:
     """Add ``obs["colour"]``: each observation's colour in its photo (sRGB), the mean over the
     same patch of seabed in every view, a box whose side in pixels shrinks with the range
@@ -171,17 +180,21 @@ def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, ro
     levels, the coefficients as fitted (``"fit"``: the attenuation of any sign) and with
     ``rounds`` their spread over refits (``"spread"``). ``moving_light``: the photos hold light
     that moves over the seabed (caustics; core/model/medium_fit.py: the fit under it).
-    ``natural_only``: no refits where the fit is unlike any natural water (no ``"spread"``)."""
+    ``natural_only``: no refits where the fit is unlike any natural water (no ``"spread"``).
+    ``obs["lit"]`` (K,), where there: a lamp's known gain on each observation's seabed, the
+    veil in front of it (the true colours are the seabed's evenly lit)."""
     point, rng, colour = obs["point"], obs["range"], obs["colour"]
+    lit = obs.get("lit")
     if moving_light:   # the light's noise needs more of them; its fit is the faster
         max_observations = max(max_observations, LIGHT_OBSERVATIONS)
     if len(point) > max_observations:
         keep = np.sort(np.random.default_rng(1).choice(len(point), max_observations, replace=False))
         point, rng, colour = point[keep], rng[keep], colour[keep]
+        lit = None if lit is None else lit[keep]
     n = len(obs["points"])
     seen = torch.from_numpy(colour).float()
     fit = medium_fit.fit_water(point, n, rng, srgb_to_linear(seen).double().numpy(), length, rounds=rounds,
-                               moving_light=moving_light, natural_only=natural_only)
+                               moving_light=moving_light, natural_only=natural_only, lit=lit)
     # no water: each point's median colour
     order = np.argsort(point, kind="stable")
     bounds = np.flatnonzero(np.diff(point[order])) + 1
@@ -197,10 +210,13 @@ def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, ro
     with torch.no_grad():
         true_srgb = linear_to_srgb(torch.from_numpy(fit["J"]).float().clamp(0.0, 1.0))
         ones = torch.ones(len(pt))
-        fitted = medium.see(true_srgb[pt], ones, r, ones)
+        shown = true_srgb[pt]
+        if lit is not None:   # the seabed as the lamp lit it, in front of the water
+            shown = linear_to_srgb((srgb_to_linear(shown) * torch.from_numpy(lit).float().unsqueeze(-1)).clamp(0, 1))
+        fitted = medium.see(shown, ones, r, ones)
         err_plain = float((seen - plain[pt]).abs().mean()) * 255
         err_water = float((fitted - seen).abs().mean()) * 255
-        effect = float((fitted - true_srgb[pt]).abs().mean()) * 255
+        effect = float((fitted - shown).abs().mean()) * 255
     medium.raw = torch.nn.Parameter(medium.raw.detach().to(device))
     j_seen = np.asarray(fit["J"])[np.unique(point)]   # the fitted true colours of the points seen
     return {"medium": medium, "true": true_srgb.numpy(), "error_plain": err_plain, "error_water": err_water,
@@ -319,8 +335,7 @@ class MediumMixin:
         self._held: Optional[torch.Tensor] = None   # the water's numbers kept from the points
         if c.medium == "off":
             return
-        obs = _observations(self.data)
-        prof = range_profile(obs)
+        prof = range_profile(self.point_observations(colours=False))
         self.medium_info.update(prof)
         if not prof["median_range"] > 0:
             self.medium_info["reason"] = "no sparse point in view: no range to fit water on"
@@ -330,10 +345,10 @@ class MediumMixin:
                                           f"view x{prof['range_spread']:.2f}, below x{MIN_RANGE_SPREAD}): water "
                                           "cannot be told from the seabed's colour")
             return
-        _sample_colours(self.data, obs)
-        self._unlit(obs)
+        obs = self.point_observations()
         # under caustics the fit measures the light's grey gain instead of taking it for noise
         moving = bool((getattr(self, "light", None) or {}).get("caustics"))
+        self._unlit(obs, divide=moving)
         fit = fit_from_points(obs, prof["median_range"], device=self.device, moving_light=moving,
                               natural_only=c.medium == "auto")
         pins = pinning(fit)
@@ -393,19 +408,21 @@ class MediumMixin:
         with torch.no_grad():   # the fitted medium's own parameter, on its device, takes the values
             fit["medium"].raw.copy_(Medium.from_values(vals).raw)
 
-    def _unlit(self, obs: dict) -> None:
-        """The observations' colours with the lamp's light taken out (where the run models a
-        lamp): its fall-off with range is not the water's attenuation."""
+    def _unlit(self, obs: dict, divide: bool = False) -> None:
+        """The lamp's light on the observations (where the run models a lamp): its fall-off with
+        range is not the water's attenuation. Its gain goes to the fit as each observation's
+        known light on the seabed (``obs["lit"]``), the veil in front of it as the camera sees
+        it; with ``divide`` (light that moves over the seabed too, which the fit measures) the
+        colours are divided by it instead."""
         lamp = getattr(self, "lamp", None)
         if lamp is None or not len(obs["colour"]):
             return
-        xs, ys = [], []
-        for _, cam, _, u, v, _ in obs["views"]:
-            xs.append((u - cam.cx) / (0.5 * cam.width))
-            ys.append((v - cam.cy) / (0.5 * cam.width))
         with torch.no_grad():
             g = torch.exp(lamp.log_gain_at(*(torch.as_tensor(a, dtype=torch.float32, device=lamp.raw.device)
-                                             for a in (np.concatenate(xs), np.concatenate(ys), obs["range"]))))
+                                             for a in (*image_positions_of(obs), obs["range"]))))
+        if not divide:
+            obs["lit"] = g.cpu().double().numpy()
+            return
         lin = srgb_to_linear(torch.from_numpy(obs["colour"])) / g.cpu().unsqueeze(-1)
         obs["colour"] = linear_to_srgb(lin.clamp(0.0, 1.0)).numpy()
 
