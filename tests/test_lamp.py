@@ -146,9 +146,15 @@ def test_the_lamp_is_checkpointed_and_kept_in_snapshots(lamp_scene):
     from types import SimpleNamespace
     from recgs_addon.core.train.lamp import LAMP_DARKEST, LAMP_WEIGHT_CAP
     cam = tr.data.view(tr.data.train_ids[0], 1)[0]
-    out = SimpleNamespace(alpha=torch.ones(cam.height, cam.width), depth=torch.full((cam.height, cam.width), 2.5))
-    w = tr.lamp_weight(out, cam)
+    out = SimpleNamespace(alpha=torch.ones(cam.height, cam.width), depth=torch.full((cam.height, cam.width), 2.5),
+                          rgb=torch.full((cam.height, cam.width, 3), 0.5))
+    seen, shared = tr.seen_and_lamp(out, cam)   # the step's weight from the lamp its render was lit by
     log_l = tr.lamp_log_gain_of(cam, 2.5 * tr.ray_len(cam)).detach()
+    assert torch.allclose(shared, log_l) and torch.equal(seen, tr.as_seen(out, cam))
+    from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
+    expect = linear_to_srgb((srgb_to_linear(torch.tensor(0.5)) * torch.exp(log_l)).clamp(0, 1))
+    assert torch.allclose(seen, expect.unsqueeze(-1).expand_as(seen), atol=1e-6)
+    w = tr.lamp_weight(shared)
     lit = log_l >= math.log(LAMP_DARKEST)
     assert float(w.max()) <= LAMP_WEIGHT_CAP and bool((w[~lit] == 0).all())
     assert torch.allclose(w[lit], torch.exp(-log_l[lit] / 2.4).clamp(max=LAMP_WEIGHT_CAP), rtol=1e-5)

@@ -170,13 +170,12 @@ class LampMixin:
         grey = srgb_to_linear(torch.from_numpy(obs["colour"]).double()).mean(-1).numpy()
         return fit_to_points(obs["point"], *image_positions_of(obs), obs["range"], grey, r0, start=start)
 
-    def lamp_weight(self, out, cam) -> torch.Tensor:
+    @staticmethod
+    def lamp_weight(log_l: torch.Tensor) -> torch.Tensor:
         """(H, W) each pixel's weight in the loss under the lamp (:data:`LAMP_WEIGHT_CAP`), from
-        the render ``out``'s range; not differentiated."""
-        from ..model.medium import Medium
+        the lamp's log gain ``log_l`` (H, W) on the view; not differentiated."""
         with torch.no_grad():
-            rng = Medium.range_of(out.alpha, out.depth, self.ray_len(cam))
-            log_l = self.lamp_log_gain_of(cam, rng)
+            log_l = log_l.detach()
             w = torch.exp(-log_l / 2.4).clamp(max=LAMP_WEIGHT_CAP)
             return torch.where(log_l >= math.log(LAMP_DARKEST), w, torch.zeros_like(w))
 

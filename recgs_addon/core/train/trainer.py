@@ -225,11 +225,13 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin, LampMix
         out = render(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], (p["sh_dc"], p["sh_rest"]),
                      viewmat, K, cam.width, cam.height, sh_degree=self.sh_degree,
                      background=self._background(), compiled=path, gather=rg, weights=weights)
+        log_l = None
         if self.forms_image:   # fit the photos as the lamp lit them and the water showed them
-            out = out._replace(rgb=self.as_seen(out, cam))
+            rgb, log_l = self.seen_and_lamp(out, cam)
+            out = out._replace(rgb=rgb)
         target, weight = self.objective.target(index, img, out.rgb.detach())
-        if getattr(self, "lamp", None) is not None:   # the frame's dark parts count as if evenly lit
-            even = self.lamp_weight(out, cam)
+        if log_l is not None:   # under a lamp the frame's dark parts count as if evenly lit
+            even = self.lamp_weight(log_l)
             weight = even if weight is None else weight * even
         keep = self.counts(index, level)   # a burned-in overlay does not count
         rgb = out.rgb

@@ -459,19 +459,23 @@ class MediumMixin:
     def as_seen(self, out, cam) -> torch.Tensor:
         """The render ``out`` of camera ``cam`` as the camera sees it: lit by the lamp and
         through the water (its ``rgb`` unchanged with neither)."""
+        return self.seen_and_lamp(out, cam)[0]
+
+    def seen_and_lamp(self, out, cam) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+        """:meth:`as_seen` and the lamp's log gain (H, W) on the view it used (``None`` without
+        a lamp), so that a training step weighs its pixels without working the lamp out again."""
         lamp = getattr(self, "lamp", None)
         if self.medium is None and lamp is None:
-            return out.rgb
+            return out.rgb, None
         rng = Medium.range_of(out.alpha, out.depth, self.ray_len(cam))
         if lamp is not None:   # the lamp's light in linear light, then the water in front of it
-            lit = srgb_to_linear(out.rgb.clamp(0.0, 1.0)) * torch.exp(self.lamp_log_gain_of(cam, rng)).unsqueeze(-1)
-            if self.medium is None:
-                return linear_to_srgb(lit.clamp(0.0, 1.0))
-            return self.medium.see_at(linear_to_srgb(lit.clamp(0.0, 1.0)), rng)
+            log_l = self.lamp_log_gain_of(cam, rng)
+            lit = linear_to_srgb((srgb_to_linear(out.rgb.clamp(0.0, 1.0)) * torch.exp(log_l).unsqueeze(-1)).clamp(0.0, 1.0))
+            return (lit if self.medium is None else self.medium.see_at(lit, rng)), log_l
         if (self.compiler.compiled() == "numba" and out.rgb.dtype == torch.float32
                 and out.rgb.device.type == "cpu" and numba_water.load() is not None):
-            return numba_water.see(out.rgb, rng, *self.medium.coefficients())   # numba's threads, one pass
-        return self.medium.see_at(out.rgb, rng)
+            return numba_water.see(out.rgb, rng, *self.medium.coefficients()), None   # numba's threads, one pass
+        return self.medium.see_at(out.rgb, rng), None
 
     def _hold_points_water(self) -> None:
         """Which of the water's raw parameters (rows: attenuation, backscatter, veil; columns:
