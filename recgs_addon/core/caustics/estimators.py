@@ -17,7 +17,7 @@ import torch
 
 from ..io.frames import read_frame_times
 from ..io.looks import MAX_BRACKET_S, look_reader, place_looks, read_looks
-from ..model.colour import linear_to_srgb, srgb_to_linear
+from ..model.colour import linear_to_srgb, lit_by, srgb_to_linear
 from ..model.lamp import Lamp
 from ..train.data import view_tensors
 from ..train.lamp import centre_range
@@ -354,7 +354,7 @@ class Estimates:
         photo = self.data.view(index, 1)[1]
         h, w = photo.shape[:2]
         full = _resize(ratio.clamp(0, 4).permute(2, 0, 1), h, w).permute(1, 2, 0)
-        return linear_to_srgb((srgb_to_linear(photo.clamp(0, 1)) * full).clamp(0, 1))
+        return lit_by(photo, full)
 
     def _even_the_light(self, views: list, ids: list[int], scale: int = 1) -> Optional[list]:
         """Where the survey shows light fixed to the camera (the trainer's lamp, or the light
@@ -524,4 +524,4 @@ def _relit(image: torch.Tensor, log_gain: Optional[list], k: int) -> torch.Tenso
     """An estimate made on evened photos (``Estimates._even_the_light``) lit again as frame ``k`` was."""
     if log_gain is None:
         return image
-    return linear_to_srgb((srgb_to_linear(image.clamp(0, 1)) * torch.exp(log_gain[k]).unsqueeze(-1)).clamp(0, 1))
+    return lit_by(image, torch.exp(log_gain[k]).unsqueeze(-1))

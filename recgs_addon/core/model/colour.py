@@ -18,3 +18,9 @@ def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
     """The sRGB encoding curve (the power's slope stays finite: its branch is not taken near 0)."""
     x = x.clamp_min(0)
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
+
+
+def lit_by(x: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
+    """sRGB colours ``x`` (..., 3) lit by a grey ``gain`` (..., 3 or broadcastable) in linear
+    light, both ends clamped to [0, 1]."""
+    return linear_to_srgb((srgb_to_linear(x.clamp(0.0, 1.0)) * gain).clamp(0.0, 1.0))

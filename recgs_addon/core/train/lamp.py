@@ -122,7 +122,7 @@ class LampMixin:
         a, b = (light.get("range_coef") or [0.0, 0.0])[:2]
         self.lamp = Lamp(r0, light["pattern_coef"], a, b, device=self.device)
         self.lamp_info["start_from"] = "frames"
-        frames = Lamp(r0, light["pattern_coef"], a, b).values()
+        frames = self.lamp.values()
         fit = self._lamp_from_points(r0, frames)
         if fit is not None:
             self.lamp_info["points_fit"] = {k: round(fit[k], 4) if isinstance(fit[k], float) else fit[k]

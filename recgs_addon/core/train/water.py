@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from . import numba_water
-from ..model.colour import linear_to_srgb, srgb_to_linear
+from ..model.colour import linear_to_srgb, lit_by, srgb_to_linear
 from ..model import jerlov, medium_fit
 from ..model.gaussians import SH_C0
 from ..model.medium import Medium, out_of_water, ray_lengths
@@ -212,7 +212,7 @@ def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, ro
         ones = torch.ones(len(pt))
         shown = true_srgb[pt]
         if lit is not None:   # the seabed as the lamp lit it, in front of the water
-            shown = linear_to_srgb((srgb_to_linear(shown) * torch.from_numpy(lit).float().unsqueeze(-1)).clamp(0, 1))
+            shown = lit_by(shown, torch.from_numpy(lit).float().unsqueeze(-1))
         fitted = medium.see(shown, ones, r, ones)
         err_plain = float((seen - plain[pt]).abs().mean()) * 255
         err_water = float((fitted - seen).abs().mean()) * 255
@@ -470,7 +470,7 @@ class MediumMixin:
         rng = Medium.range_of(out.alpha, out.depth, self.ray_len(cam))
         if lamp is not None:   # the lamp's light in linear light, then the water in front of it
             log_l = self.lamp_log_gain_of(cam, rng)
-            lit = linear_to_srgb((srgb_to_linear(out.rgb.clamp(0.0, 1.0)) * torch.exp(log_l).unsqueeze(-1)).clamp(0.0, 1.0))
+            lit = lit_by(out.rgb, torch.exp(log_l).unsqueeze(-1))
             return (lit if self.medium is None else self.medium.see_at(lit, rng)), log_l
         if (self.compiler.compiled() == "numba" and out.rgb.dtype == torch.float32
                 and out.rgb.device.type == "cpu" and numba_water.load() is not None):
