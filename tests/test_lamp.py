@@ -138,6 +138,52 @@ def test_training_models_a_lamp_the_survey_shows(lamp_scene):
     assert seen > 20.0
 
 
+def test_the_gaussians_start_evenly_lit_under_a_lamp(lamp_scene):
+    """The Gaussians start from the sparse points' colours as the lamp's model holds the seabed
+    (each point's pixels in the photos over the lamp's light there), not as the photos show it:
+    under the lamp's dark corners those are a fraction of the centre's light, and Gaussians
+    started from them leave the lamp to make up the difference at first."""
+    from recgs_addon.core.io.images import read_image
+    from recgs_addon.core.model.colour import srgb_to_linear
+    from recgs_addon.core.model.gaussians import sh_dc_to_rgb
+    cfg = preset("default", iterations=1, compiled=False, pyramid=(), lamp="auto", medium="off")
+    tr = make_method(lamp_scene, cfg, CausticConfig(mode="3dgs"), gt_images="clean").trainer
+    assert tr.lamp is not None
+    pts = np.asarray(tr.data.scene.points, np.float64)
+    clean, lit, n = np.zeros((len(pts), 3)), np.zeros((len(pts), 3)), np.zeros(len(pts))
+    for i in tr.data.train_ids:   # each point's colour in clean/ and in the photos, in linear light
+        cam = tr.data.camera(i, 1)
+        pc = pts @ cam.R.T + cam.t
+        u, v = cam.fx * pc[:, 0] / pc[:, 2] + cam.cx, cam.fy * pc[:, 1] / pc[:, 2] + cam.cy
+        seen = np.flatnonzero((u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height))
+        at = (v[seen].astype(int), u[seen].astype(int))
+        for acc, folder in ((clean, "clean"), (lit, "images")):
+            img = read_image(lamp_scene / folder / cam.name, size=(cam.width, cam.height))
+            acc[seen] += srgb_to_linear(torch.from_numpy(img[at])).numpy()
+        n[seen] += 1
+    # the Gaussians started from the points' true colours
+    dc = sh_dc_to_rgb(tr.params["sh_dc"].detach()[:, 0].double().numpy())
+    assert np.allclose(dc, tr.true_point_colours() / 255.0, atol=1e-6)
+    seen = n > 0
+    truth, as_lit = clean[seen] / n[seen, None], lit[seen] / n[seen, None]
+    # the sparse model's colours as SfM gives them: the photos' (this scene's are the truth)
+    from recgs_addon.core.model.colour import linear_to_srgb
+    sfm = np.asarray(tr.data.scene.colors).copy()
+    sfm[seen] = np.round(linear_to_srgb(torch.from_numpy(as_lit)).numpy() * 255)
+    tr.data.scene.colors = sfm
+    start = srgb_to_linear(torch.from_numpy(tr.true_point_colours() / 255.0)).numpy()[seen]
+    err_start, err_lit = np.abs(start - truth).mean(), np.abs(as_lit - truth).mean()
+    assert err_lit > 0.04, (err_start, err_lit)   # the lamp darkens the photos' corners
+    assert err_start < 0.3 * err_lit and err_start < 0.02, (err_start, err_lit)
+    # the photos decide the colour of a point they see, not the sparse model's colour
+    again = tr.evened_point_colours(np.zeros((len(pts), 3), np.uint8))
+    assert np.array_equal(again[seen], tr.evened_point_colours(sfm)[seen])
+    # ... and without a lamp the colours are the sparse model's
+    lamp, tr.lamp = tr.lamp, None
+    assert np.array_equal(tr.true_point_colours(), sfm)
+    tr.lamp = lamp
+
+
 def test_the_lamp_is_checkpointed_and_kept_in_snapshots(lamp_scene):
     m = _run(lamp_scene, "on", steps=60)
     tr = m.trainer

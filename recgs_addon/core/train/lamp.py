@@ -8,8 +8,9 @@ with range, vignetting), explains :data:`LAMP_EXPLAINED` of how the frames diffe
 more than the light that moves over the seabed (broad caustics'
 part the fit between frames cannot tell from a pattern). The lamp is then fitted to the
 sparse points' colours in every training view (core/model/lamp.py ``fit_to_points``; the
-finding's fit between frames where that fit is no better or its fall-off no lamp's), and
-training refines it, each pixel weighed as if the seabed there were evenly lit
+finding's fit between frames where that fit is no better or its fall-off no lamp's), the
+Gaussians start from the points' colours evenly lit under it (:meth:`LampMixin.evened_point_colours`),
+and training refines both, each pixel weighed as if the seabed there were evenly lit
 (:meth:`LampMixin.lamp_weight`). The water's fit to the sparse points (water.py) then takes
 the lamp's light on each point as known, the veil in front of it, so the lamp's fall-off with
 range is not taken for the water's attenuation.
@@ -25,6 +26,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from ..model.colour import linear_to_srgb, srgb_to_linear
 from ..model.lamp import Lamp
 
 #: The light fixed to the camera is modelled (auto) from this spread over the frame (standard
@@ -54,6 +56,9 @@ POINTS_FALL = (-4.0, 1.0)
 #: Share of the image's width around the principal point whose sparse points give the range the
 #: lamp is normalised at (:func:`centre_range`).
 CENTRE_SHARE = 0.15
+#: Training views (spread over the survey) whose pixels even the sparse points' colours under the
+#: lamp before training (:meth:`LampMixin.evened_point_colours`).
+EVEN_VIEWS = 64
 
 
 def centre_range(data) -> Optional[float]:
@@ -141,6 +146,53 @@ class LampMixin:
                               reason=f"light fixed to the camera (a lamp's cone and fall-off, or vignetting) varies "
                                      f"by {pct:.0f} % over the frame: modelled, the Gaussians hold the seabed evenly "
                                      f"lit as the lamp lights the frame's centre at {r0:.2f} units")
+
+    def evened_point_colours(self, colours: np.ndarray) -> np.ndarray:
+        """(M, 3) uint8 the sparse points' ``colours`` as the lamp's model holds the seabed: evenly
+        lit as the lamp lights the frame's centre at ``r0``. A point's colour in the photos is its
+        seabed times the lamp's light where each view saw it, which under a narrow beam is a
+        fraction of the centre's: Gaussians started from it render the frames too dark, and in the
+        first hundred steps the lamp (a few numbers every pixel teaches) brightens everywhere but
+        at the frame's centre, where it is 1 by definition, faster than the Gaussians catch up;
+        it took the rest of a three-minute run to come back. Each point seen in the training
+        views (at most :data:`EVEN_VIEWS` of them, spread over the survey) takes the least
+        squares ``sum L_k I_k / sum L_k^2`` of its pixels ``I_k`` (linear light, the photos at
+        the training size) under the lamp's light ``L_k`` there; a point in none of them is
+        divided by the lamp's median light over all that were."""
+        pts = np.asarray(self.data.scene.points, np.float64)
+        lin = srgb_to_linear(torch.from_numpy(np.asarray(colours, np.float32) / 255.0)).double().numpy()
+        if self.lamp is None or not len(pts):
+            return np.asarray(colours)
+        ids = list(self.data.train_ids)
+        ids = [ids[k] for k in np.unique(np.linspace(0, len(ids) - 1, min(len(ids), EVEN_VIEWS)).round().astype(int))]
+        num = np.zeros((len(pts), 3))
+        den = np.zeros(len(pts))
+        gains = []
+        for i in ids:
+            cam, img = self.data.view(i, 1)
+            pc = pts @ cam.R.T + cam.t
+            z = pc[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = cam.fx * pc[:, 0] / z + cam.cx
+                v = cam.fy * pc[:, 1] / z + cam.cy
+            seen = np.flatnonzero((z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height))
+            if not seen.size:
+                continue
+            half = 0.5 * cam.width
+            with torch.no_grad():
+                g = torch.exp(self.lamp.log_gain_at(
+                    *(torch.as_tensor(a, dtype=torch.float32, device=self.lamp.raw.device)
+                      for a in ((u[seen] - cam.cx) / half, (v[seen] - cam.cy) / half,
+                                np.linalg.norm(pc[seen], axis=1))))).cpu().double().numpy()
+            px = img[torch.from_numpy(v[seen].astype(np.int64)), torch.from_numpy(u[seen].astype(np.int64))]
+            num[seen] += g[:, None] * srgb_to_linear(px.cpu().double()).numpy()
+            den[seen] += g * g
+            gains.append(g)
+        seen = den > 0
+        out = lin / max(float(np.median(np.concatenate(gains))) if gains else 1.0, 1e-3)
+        out[seen] = num[seen] / den[seen, None]
+        srgb = linear_to_srgb(torch.from_numpy(np.clip(out, 0.0, 1.0))).numpy()
+        return np.round(srgb * 255).astype(np.uint8)
 
     def point_observations(self, colours: bool = True) -> dict:
         """The sparse points' observations in the training views (water.py's ``_observations``)

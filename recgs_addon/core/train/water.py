@@ -427,9 +427,12 @@ class MediumMixin:
         obs["colour"] = linear_to_srgb(lin.clamp(0.0, 1.0)).numpy()
 
     def true_point_colours(self) -> np.ndarray:
-        """(M, 3) uint8 colours of the survey's sparse points without the water: those fitted
-        before training take their fit, the others are taken out of the water at the median range."""
+        """(M, 3) uint8 colours of the survey's sparse points without the water and, under a lamp,
+        evenly lit (:meth:`~.lamp.LampMixin.evened_point_colours`): those fitted before training
+        take their fit, the others are taken out of the water at the median range."""
         colours = np.asarray(self.data.scene.colors)
+        if getattr(self, "lamp", None) is not None:
+            colours = self.evened_point_colours(colours)
         if self._prefit is None:
             return colours
         vals = self.medium.values()
