@@ -184,6 +184,33 @@ def test_the_gaussians_start_evenly_lit_under_a_lamp(lamp_scene):
     tr.lamp = lamp
 
 
+def test_the_oracle_colours_its_points_from_the_clean_photos(lamp_scene):
+    """``oracle`` is 3DGS on the clean photos as if the survey had been solved from them: its
+    sparse points take their colours from those photos, not from the photos as filmed (this
+    scene's are lit by a lamp). Each point's colour is its pixels' mean in linear light."""
+    from recgs_addon.core.io.colmap import load_scene
+    from recgs_addon.core.io.images import read_image
+    from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
+    cfg = preset("default", iterations=1, compiled=False, pyramid=(), lamp="off", medium="off")
+    data = make_method(lamp_scene, cfg, CausticConfig(mode="oracle"), gt_images="clean").trainer.data
+    filed = np.asarray(load_scene(lamp_scene, check_images=False).colors)
+    pts = np.asarray(data.scene.points, np.float64)
+    acc, n = np.zeros((len(pts), 3)), np.zeros(len(pts))
+    for i in data.train_ids:
+        cam = data.camera(i, 1)
+        pc = pts @ cam.R.T + cam.t
+        u, v = cam.fx * pc[:, 0] / pc[:, 2] + cam.cx, cam.fy * pc[:, 1] / pc[:, 2] + cam.cy
+        seen = np.flatnonzero((u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height))
+        img = read_image(lamp_scene / "clean" / cam.name, size=(cam.width, cam.height))
+        acc[seen] += srgb_to_linear(torch.from_numpy(img[v[seen].astype(int), u[seen].astype(int)])).numpy()
+        n[seen] += 1
+    seen = n > 0
+    want = np.round(linear_to_srgb(torch.from_numpy(acc[seen] / n[seen, None])).numpy() * 255)
+    assert seen.mean() > 0.5 and np.abs(data.scene.colors[seen].astype(float) - want).max() <= 1
+    assert not np.array_equal(data.scene.colors, filed)   # not the sparse model's own colours
+    assert np.array_equal(data.scene.colors[~seen], filed[~seen])
+
+
 def test_the_lamp_is_checkpointed_and_kept_in_snapshots(lamp_scene):
     m = _run(lamp_scene, "on", steps=60)
     tr = m.trainer

@@ -31,6 +31,10 @@ def make_method(scene_dir: str | Path, cfg: TrainConfig, ccfg: CausticConfig, im
                              "clean/ folder (pass --gt-images DIR)")
         images = gt_images
     data = load_data(scene_dir, cfg, images=images, gt_images=gt_images)
+    if ccfg.mode == "oracle" and gaussians is None:
+        # 3DGS on the clean photos, as if the survey had been solved from them: its sparse
+        # points coloured by them, not by the photos as filmed (a lamp's dark corners, the water)
+        data.scene.colors = data.point_colours(data.scene.colors)
     light = None
     if cfg.lamp != "off" or (ccfg.mode == "recgs" and ccfg.caustics == "auto"):
         light = survey_light(data, times=read_frame_times(data.scene.scene_dir) or {}).summary()

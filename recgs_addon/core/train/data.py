@@ -8,6 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Optional
 
+import numpy as np
 import torch
 
 from ..errors import RecGSError
@@ -17,6 +18,9 @@ from ..model.cameras import Camera
 
 #: Smallest image side (pixels) accepted after downscaling.
 MIN_IMAGE_SIDE = 8
+#: Training views (spread over the survey) whose pixels colour the sparse points
+#: (:meth:`TrainData.point_colours`).
+COLOUR_VIEWS = 64
 
 
 def holdout_split(names: list[str], every: int, held: Optional[set] = None) -> tuple[list[int], list[int]]:
@@ -95,6 +99,45 @@ class TrainData:
         if index not in self._photos:
             self._photos[index] = self._decode(self.scene, index)
         return self._photos[index]
+
+    def point_colours(self, colours: np.ndarray, gain: Optional[Callable] = None) -> np.ndarray:
+        """(M, 3) uint8 the sparse points' colours read from the training photos: each point seen
+        in the training views (at most :data:`COLOUR_VIEWS` of them, spread over the survey; no
+        occlusion test: a seabed seen from above) takes the least squares ``sum g_k I_k / sum
+        g_k^2`` of its pixels ``I_k`` (linear light, nearest pixel, the photos at the training
+        size) under a known light ``g_k`` there: ``gain(cam, u, v, rng)`` gives it for a view's
+        pixel positions ``u``, ``v`` and ranges ``rng`` (K,) (None: 1, the plain mean). A point
+        in none of them keeps its colour in ``colours`` (M, 3) uint8, divided by the light's
+        median over the points that were seen."""
+        from ..model.colour import linear_to_srgb, srgb_to_linear
+        pts = np.asarray(self.scene.points, np.float64)
+        colours = np.asarray(colours)
+        if not len(pts):
+            return colours
+        ids = list(self.train_ids)
+        ids = [ids[k] for k in np.unique(np.linspace(0, len(ids) - 1, min(len(ids), COLOUR_VIEWS)).round().astype(int))]
+        num, den, lights = np.zeros((len(pts), 3)), np.zeros(len(pts)), []
+        for i in ids:
+            cam, img = self.view(i, 1)
+            pc = pts @ cam.R.T + cam.t
+            z = pc[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = cam.fx * pc[:, 0] / z + cam.cx
+                v = cam.fy * pc[:, 1] / z + cam.cy
+            seen = np.flatnonzero((z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height))
+            if not seen.size:
+                continue
+            g = np.ones(seen.size) if gain is None else np.asarray(
+                gain(cam, u[seen], v[seen], np.linalg.norm(pc[seen], axis=1)), np.float64)
+            px = img[torch.from_numpy(v[seen].astype(np.int64)), torch.from_numpy(u[seen].astype(np.int64))]
+            num[seen] += g[:, None] * srgb_to_linear(px.cpu().double()).numpy()
+            den[seen] += g * g
+            lights.append(g)
+        lin = srgb_to_linear(torch.from_numpy(colours.astype(np.float64) / 255.0)).numpy()
+        out = lin / max(float(np.median(np.concatenate(lights))) if lights else 1.0, 1e-3)
+        seen = den > 0
+        out[seen] = num[seen] / den[seen, None]
+        return np.round(linear_to_srgb(torch.from_numpy(np.clip(out, 0.0, 1.0))).numpy() * 255).astype(np.uint8)
 
     def view(self, index: int, level: int = 1) -> tuple[Camera, torch.Tensor]:
         """(camera, image (H, W, 3) float32) of camera ``index`` at extra downscale ``level``."""

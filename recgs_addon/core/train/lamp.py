@@ -26,7 +26,6 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ..model.colour import linear_to_srgb, srgb_to_linear
 from ..model.lamp import Lamp
 
 #: The light fixed to the camera is modelled (auto) from this spread over the frame (standard
@@ -56,9 +55,6 @@ POINTS_FALL = (-4.0, 1.0)
 #: Share of the image's width around the principal point whose sparse points give the range the
 #: lamp is normalised at (:func:`centre_range`).
 CENTRE_SHARE = 0.15
-#: Training views (spread over the survey) whose pixels even the sparse points' colours under the
-#: lamp before training (:meth:`LampMixin.evened_point_colours`).
-EVEN_VIEWS = 64
 
 
 def centre_range(data) -> Optional[float]:
@@ -154,45 +150,19 @@ class LampMixin:
         fraction of the centre's: Gaussians started from it render the frames too dark, and in the
         first hundred steps the lamp (a few numbers every pixel teaches) brightens everywhere but
         at the frame's centre, where it is 1 by definition, faster than the Gaussians catch up;
-        it took the rest of a three-minute run to come back. Each point seen in the training
-        views (at most :data:`EVEN_VIEWS` of them, spread over the survey) takes the least
-        squares ``sum L_k I_k / sum L_k^2`` of its pixels ``I_k`` (linear light, the photos at
-        the training size) under the lamp's light ``L_k`` there; a point in none of them is
-        divided by the lamp's median light over all that were."""
-        pts = np.asarray(self.data.scene.points, np.float64)
-        lin = srgb_to_linear(torch.from_numpy(np.asarray(colours, np.float32) / 255.0)).double().numpy()
-        if self.lamp is None or not len(pts):
+        it took the rest of a three-minute run to come back. The points' colours are read from
+        the photos under the lamp's light (:meth:`~.data.TrainData.point_colours`)."""
+        if self.lamp is None:
             return np.asarray(colours)
-        ids = list(self.data.train_ids)
-        ids = [ids[k] for k in np.unique(np.linspace(0, len(ids) - 1, min(len(ids), EVEN_VIEWS)).round().astype(int))]
-        num = np.zeros((len(pts), 3))
-        den = np.zeros(len(pts))
-        gains = []
-        for i in ids:
-            cam, img = self.data.view(i, 1)
-            pc = pts @ cam.R.T + cam.t
-            z = pc[:, 2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = cam.fx * pc[:, 0] / z + cam.cx
-                v = cam.fy * pc[:, 1] / z + cam.cy
-            seen = np.flatnonzero((z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height))
-            if not seen.size:
-                continue
+        lamp = self.lamp
+
+        def light(cam, u, v, rng):
             half = 0.5 * cam.width
             with torch.no_grad():
-                g = torch.exp(self.lamp.log_gain_at(
-                    *(torch.as_tensor(a, dtype=torch.float32, device=self.lamp.raw.device)
-                      for a in ((u[seen] - cam.cx) / half, (v[seen] - cam.cy) / half,
-                                np.linalg.norm(pc[seen], axis=1))))).cpu().double().numpy()
-            px = img[torch.from_numpy(v[seen].astype(np.int64)), torch.from_numpy(u[seen].astype(np.int64))]
-            num[seen] += g[:, None] * srgb_to_linear(px.cpu().double()).numpy()
-            den[seen] += g * g
-            gains.append(g)
-        seen = den > 0
-        out = lin / max(float(np.median(np.concatenate(gains))) if gains else 1.0, 1e-3)
-        out[seen] = num[seen] / den[seen, None]
-        srgb = linear_to_srgb(torch.from_numpy(np.clip(out, 0.0, 1.0))).numpy()
-        return np.round(srgb * 255).astype(np.uint8)
+                return torch.exp(lamp.log_gain_at(*(torch.as_tensor(a, dtype=torch.float32, device=lamp.raw.device)
+                                                    for a in ((u - cam.cx) / half, (v - cam.cy) / half, rng))))\
+                    .cpu().double().numpy()
+        return self.data.point_colours(colours, light)
 
     def point_observations(self, colours: bool = True) -> dict:
         """The sparse points' observations in the training views (water.py's ``_observations``)
