@@ -119,3 +119,8 @@ def test_the_report_names_the_type_and_each_filled_channels_source():
     assert "training starts it from there" not in "\n".join(_water_section(medium))
     medium["prior"] = {"reason": "fewer than two channels pinned: the locus is not placed"}
     assert "Jerlov" not in "\n".join(_water_section(medium))
+    # the channels whose backscatter rate one altitude left free and the fit tied to the attenuation
+    medium["rate_tied"] = [False, True, True]
+    assert "backscatter rate of green, blue free" in "\n".join(_water_section(medium))
+    medium["rate_tied"] = [False] * 3
+    assert "backscatter rate of" not in "\n".join(_water_section(medium))

@@ -114,6 +114,75 @@ def test_the_least_squares_fit_is_the_minimum_of_its_loss(spread, monkeypatch):
         assert moved > best * (1 - 1e-4), (d, moved, best)
 
 
+def test_the_tied_fit_is_the_minimum_of_its_loss_and_its_error_bars_match_central_differences(monkeypatch):
+    """With the backscatter rate tied to the attenuation (a multiple of it), the fit is a minimum
+    of the squared error over the two numbers left (attenuation, veil at the median range), and
+    its Gauss-Newton variances are those of the loss's curvature: the information of the
+    residuals' Jacobian by central differences in float64."""
+    import torch
+
+    monkeypatch.setattr(medium_fit, "IRLS_ROUNDS", 1)
+    monkeypatch.setattr(medium_fit, "HUBER_K", 1e9)
+    monkeypatch.setattr(medium_fit, "TUKEY_C", 1e9)
+    point, rng, y, _ = _observations(n=300, spread=1.25, noise=0.01, seed=5)
+    n, length = int(point.max()) + 1, float(np.median(rng))
+    for tied in (1.0, 2.0):
+        f = medium_fit.fit_channel(torch.from_numpy(point), n, torch.from_numpy(rng), torch.from_numpy(y[:, 1]), length,
+                                   tied=tied)
+        assert f["backscatter"] == pytest.approx(tied * f["attenuation"])
+
+        def residuals(att, v_len):
+            a = np.exp(-att * rng)
+            z = y[:, 1] - v_len * np.expm1(-tied * att * rng) / np.expm1(-tied * att * length)
+            j = np.bincount(point, a * z, n) / np.bincount(point, a * a, n)
+            return z - j[point] * a
+        best = float(np.mean(residuals(f["attenuation"], f["veil_at_length"]) ** 2))
+        for d in ([0.99, 1], [1.01, 1], [1, 1.02], [1, 0.98]):
+            moved = float(np.mean(residuals(f["attenuation"] * d[0], f["veil_at_length"] * d[1]) ** 2))
+            assert moved > best * (1 - 1e-4), (tied, d, moved, best)
+        x = np.array([f["attenuation"], f["veil_at_length"]])
+        h = 1e-6 * np.abs(x)
+        jac = np.stack([(residuals(*(x + h * e)) - residuals(*(x - h * e))) / (2 * h[k])
+                        for k, e in enumerate(np.eye(2))], 1)
+        res = residuals(*x)
+        var = float(res @ res) / (len(res) - len(np.unique(point)) - 3)
+        cov = var * np.linalg.inv(jac.T @ jac)
+        assert f["variance"][0] == pytest.approx(cov[0, 0], rel=1e-3)
+        assert f["variance"][2] == pytest.approx(cov[1, 1], rel=1e-3)
+        assert f["variance"][1] == pytest.approx(tied * tied * cov[0, 0], rel=1e-3)
+
+
+def test_a_rate_one_altitude_leaves_free_is_tied_to_the_attenuation():
+    """Flown at one altitude (each point's ranges within x1.2) the veil's value and its growth
+    with range trade against each other; the refits leave the rate free, and the water's fit
+    ties it to the attenuation: the veil at the median range comes out nearer the truth than the
+    free rate left it, within its error bars, which cover the tie's own doubt. Seen from ranges
+    x3 apart the survey pins the rate of green and blue, whose veils are bright, and they are not
+    tied (red's veil is a twentieth of theirs: nothing pins its rate)."""
+    truth = {"attenuation": [0.5, 0.22, 0.34], "backscatter": [0.4, 0.3, 0.3], "veil": [0.012, 0.085, 0.065]}
+    point, rng, y, _ = _observations(n=800, spread=1.2, near=(2.3, 2.7), noise=0.004, outliers=0.05, water=truth,
+                                     seed=6)
+    n, length = int(point.max()) + 1, float(np.median(rng))
+    free = medium_fit.fit_water(point, n, rng, y, length, rounds=4)
+    tied = medium_fit.fit_water(point, n, rng, y, length, rounds=4, tie_free_rates=water.PINNED)
+    want = np.asarray(truth["veil"]) * -np.expm1(-np.asarray(truth["backscatter"]) * length)
+    assert tied["rate_tied"][1:] == [True, True], tied["rate_tied"]
+    for c in range(3):
+        if not tied["rate_tied"][c]:
+            continue
+        assert tied["backscatter"][c] == pytest.approx(tied["attenuation"][c])
+        err_tied, err_free = abs(tied["veil_at_length"][c] - want[c]), abs(free["veil_at_length"][c] - want[c])
+        assert err_tied < err_free, (c, tied["veil_at_length"], free["veil_at_length"], want)
+        assert err_tied < 2 * tied["spread"]["veil_at_length"][c], (c, tied["veil_at_length"], tied["spread"])
+        assert abs(tied["attenuation"][c] / truth["attenuation"][c] - 1) < 0.1
+    # the survey pins the rate where the ranges are x3 apart
+    point, rng, y, _ = _observations(n=600, spread=3.0, near=(1.5, 2.0), noise=0.004, water=truth, seed=7)
+    f = medium_fit.fit_water(point, int(point.max()) + 1, rng, y, float(np.median(rng)), rounds=4,
+                             tie_free_rates=water.PINNED)
+    assert f["rate_tied"][1:] == [False, False], (f["backscatter"], f["spread"]["backscatter"])
+    assert np.allclose(f["backscatter"][1:], truth["backscatter"][1:], rtol=0.1), f["backscatter"]
+
+
 def test_the_attenuation_error_bar_matches_its_spread_over_surveys():
     """The Gauss-Newton standard error of the attenuation is the spread of the fits over
     independent draws of the same survey (within the spread's own sampling error)."""

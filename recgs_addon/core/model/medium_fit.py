@@ -48,6 +48,9 @@ TUKEY_C = 4.685
 IRLS_ROUNDS = 4
 #: The backscatter's rate searched, times the median range (its curve is a line below, a step above).
 RATE_RANGE = (0.02, 8.0)
+#: How far a natural water's backscatter rate may lie from its attenuation (a factor either
+#: way): the width the error bars of a rate tied to it cover (:func:`tie_free_rates_of`).
+RATE_PRIOR_WIDTH = 2.0
 #: Backscatter rates (times the median range) a cold fit starts from.
 COLD_RATES = (0.1, 0.5, 2.0)
 #: Under moving light: the seabed's part of a colour is compared in logs above this share of
@@ -107,7 +110,7 @@ def _robust_scale(res: torch.Tensor, w: torch.Tensor) -> float:
 
 def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, length: float,
                 w: torch.Tensor | None = None, start=(0.1, 0.3, 0.0), warm: bool = False,
-                errors: bool = True, lit: torch.Tensor | None = None) -> dict:
+                errors: bool = True, lit: torch.Tensor | None = None, tied: Optional[float] = None) -> dict:
     """One channel's water from observations ``pt`` (K,) point ids below ``n``, ranges ``r`` and
     linear colours ``y`` (K,), observation weights ``w``; ``start``: (attenuation, backscatter
     rate, veil at ``length``), ``warm``: the start is a fit's (else the rate starts at each of
@@ -136,8 +139,13 @@ def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, leng
         q = min(max((np.log(rate) - lo) / (hi - lo), 1e-3), 1 - 1e-3)
         return torch.tensor([att, float(np.log(q / (1 - q))), float(np.log(v / (1 - v)))], dtype=torch.float64)
 
+    def rate_of(t):
+        if tied is not None:   # the veil builds up at (a multiple of) the rate the water takes the light
+            return (tied * t[0]).clamp(RATE_RANGE[0] / length, RATE_RANGE[1] / length)
+        return torch.exp(lo + (hi - lo) * torch.sigmoid(t[1]))
+
     def parts(t):
-        att, rate, v_len = t[0], torch.exp(lo + (hi - lo) * torch.sigmoid(t[1])), cap * torch.sigmoid(t[2])
+        att, rate, v_len = t[0], rate_of(t), cap * torch.sigmoid(t[2])
         a = lit * torch.exp(-att * r)
         z = y - v_len * _veil_curve(rate, r, length)
         return a, z
@@ -167,7 +175,7 @@ def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, leng
 
     # the veil's rate is weakly pinned and its loss has more than one valley: a cold start tries
     # several rates (a warm start, from a fit on the same survey, one)
-    starts = [raw(*start)] if warm else [raw(start[0], k / length, 0.5 * cap) for k in COLD_RATES]
+    starts = [raw(*start)] if warm or tied is not None else [raw(start[0], k / length, 0.5 * cap) for k in COLD_RATES]
     # the no-water fit's weights to start: an observation far from its point's robust colour is
     # an outlier whatever the water (which changes a point's colour smoothly with range)
     h = _huber_weights(res0, scale)
@@ -181,26 +189,30 @@ def fit_channel(pt: torch.Tensor, n: int, r: torch.Tensor, y: torch.Tensor, leng
         theta = minimise(theta, w * h, 40)[0]
     with torch.no_grad():
         res, j = residuals(theta, w * h)
-    att, rate, v_len = float(theta[0]), float(np.exp(lo + (hi - lo) * torch.sigmoid(theta[1]))), \
-        cap * float(torch.sigmoid(theta[2]))
+    att, rate, v_len = float(theta[0]), float(rate_of(theta)), cap * float(torch.sigmoid(theta[2]))
     return {"attenuation": att, "backscatter": rate, "veil_at_length": v_len,
             "J": j.float(), "loss_water": _huber_loss(res, scale, w), "loss_plain": _huber_loss(res0, scale, w),
             "scale": scale,
-            "variance": _variances(pt, n, r, y, length, w * h, res, (att, rate, v_len), lit) if errors else None}
+            "variance": _variances(pt, n, r, y, length, w * h, res, (att, rate, v_len), lit, tied) if errors else None}
 
 
-def _variances(pt, n, r, y, length, wh, res, values, lit) -> np.ndarray:
+def _variances(pt, n, r, y, length, wh, res, values, lit, tied: Optional[float] = None) -> np.ndarray:
     """(3,) Gauss-Newton variances of (attenuation, backscatter rate, veil at ``length``) at the
     fit, each point's colour projected out (variable projection's Jacobian): the residual
     variance over the information J^T W J. Where the observations do not pin a number (a point
-    seen from one range pins no attenuation), its variance is infinite."""
+    seen from one range pins no attenuation), its variance is infinite. ``tied``: the rate is
+    this multiple of the attenuation (one number: the rate's variance follows the attenuation's)."""
     def residuals(t):
         a = lit * torch.exp(-t[0] * r)
-        z = y - t[2] * _veil_curve(t[1], r, length)
+        z = y - t[2] * _veil_curve(t[1] if tied is None else tied * t[0], r, length)
         j = _point_colours(pt, n, a, z, wh)
         return wh.sqrt() * (z - j[pt] * a)
     jac = torch.func.jacfwd(residuals)(torch.tensor(values, dtype=torch.float64))
+    if tied is not None:   # the rate's column is empty; the attenuation's carries both
+        jac[:, 1] = 0.0
     info = (jac.T @ jac).numpy()
+    if tied is not None:
+        info[1, 1] = 1.0
     dof = max(float(wh.sum()) - float((torch.bincount(pt, minlength=n) > 0).sum()) - 3, 1.0)
     var = float((wh * res ** 2).sum()) / dof
     # each number's variance with the other two free (its information's Schur complement, the
@@ -210,6 +222,8 @@ def _variances(pt, n, r, y, length, wh, res, values, lit) -> np.ndarray:
         rest = [k for k in range(3) if k != i]
         left = info[i, i] - info[i, rest] @ np.linalg.pinv(info[np.ix_(rest, rest)], rcond=1e-10) @ info[rest, i]
         out[i] = var / left if left > 1e-9 * max(info[i, i], 1e-300) else np.inf
+    if tied is not None:
+        out[1] = tied * tied * out[0]
     return out
 
 
@@ -412,7 +426,7 @@ def unnatural(attenuation, spread=None) -> Optional[str]:
 
 def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray, length: float,
               rounds: int = 0, seed: int = 0, moving_light: bool = False, natural_only: bool = False,
-              lit: Optional[np.ndarray] = None) -> dict:
+              lit: Optional[np.ndarray] = None, tie_free_rates: Optional[float] = None) -> dict:
     """The water of every channel from observations (``point`` (K,) ids below ``n``, ``rng``
     (K,), ``colour_lin`` (K, 3) linear colours) and, with ``rounds`` > 0, how well they pin it.
 
@@ -432,7 +446,11 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     fit is unlike any natural water (:func:`unnatural` without error bars) there are no refits
     and no ``spread`` (a run that models only natural water needs none). ``lit`` (K,): a known
     grey gain on each observation's seabed part (a lamp's light; :func:`fit_channel`), not
-    with ``moving_light``."""
+    with ``moving_light``.
+
+    ``tie_free_rates`` (with ``rounds``, not under moving light): a channel whose backscatter
+    rate the refits leave looser than this (their spread over its value) is fitted again with the
+    rate tied to its attenuation (:func:`tie_free_rates_of`); ``"rate_tied"`` says which."""
     if lit is not None and moving_light:
         raise ValueError("a known gain on the seabed and light that moves over it are not fitted together")
     pt = torch.from_numpy(np.asarray(point, np.int64))
@@ -477,8 +495,52 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
         # Gauss-Newton standard error (infinite where nothing pins a number)
         gn = _gauss_newton_spread(fits, length)
         out["spread"] = {k: np.maximum(boot[k], gn[k]).tolist() for k in boot}
+        if tie_free_rates is not None:
+            tie_free_rates_of(out, pt[sub], n, r[sub], y[sub], length, tie_free_rates, gs)
     out["rounds"] = rounds
     return out
+
+
+def tie_free_rates_of(out: dict, pt, n: int, r, y, length: float, loose: float, lit=None) -> None:
+    """Where the refits leave a channel's backscatter rate unpinned (its spread over its value
+    above ``loose``), fit that channel again with the rate tied to its attenuation, in place in
+    :func:`fit_water`'s ``out`` (its coefficients and ``J``; ``"rate_tied"`` per channel). A
+    survey flown at one range pins the veil's value and its growth with range only together
+    (each point's colour against its range pins the attenuation and ``attenuation V(r) +
+    V'(r)``): the rate picks the veil along that line, and free, it went where the loss's
+    shallow valley led (the generator's coastal water, 2.4-3.3 m: rates 1.07-1.18 for
+    0.30-0.34, the green and blue veil 40 % high; a green water's bright veil, rate 1.36 +- 0.33
+    for 0.18, the veil at the median range 2.4 times the truth: the refits, started from the fit,
+    stay in its valley, so a rate they call loose is no surer). Tied, the water is the single-coefficient
+    model of the textbook image formation (Jaffe and McGlamery; Schechner and Karpel): the
+    light scattered back builds up at the rate the beam is attenuated. Natural waters stray
+    from it (Akkaynak and Treibitz measured the two rates apart): the tied channel's error bars
+    cover the fits with the rate :data:`RATE_PRIOR_WIDTH` times and a fraction of it, beside the
+    tied fit's own Gauss-Newton errors."""
+    tied = []
+    for c in range(3):
+        sd, v = out["spread"]["backscatter"][c], out["backscatter"][c]
+        if not sd > loose * max(abs(v), 1e-9):
+            tied.append(False)
+            continue
+        start = (out["attenuation"][c], out["attenuation"][c], out["veil_at_length"][c])
+        g = fit_channel(pt, n, r, y[:, c], length, start=start, lit=lit, tied=1.0)
+        gn = _gauss_newton_spread([g], length)
+        ends = [fit_channel(pt, n, r, y[:, c], length, start=start, lit=lit, tied=k, errors=False)
+                for k in (RATE_PRIOR_WIDTH, 1.0 / RATE_PRIOR_WIDTH)]
+        for k in ("attenuation", "backscatter", "veil_at_length"):
+            out[k][c] = g[k]
+        out["veil"][c] = veil_from(g["backscatter"], g["veil_at_length"], length)
+        out["J"][:, c] = g["J"].numpy()
+        half = {k: 0.5 * abs(ends[0][k] - ends[1][k]) for k in ("attenuation", "backscatter", "veil_at_length")}
+        half["veil"] = 0.5 * abs(veil_from(ends[0]["backscatter"], ends[0]["veil_at_length"], length)
+                                 - veil_from(ends[1]["backscatter"], ends[1]["veil_at_length"], length))
+        sp = out["spread"]
+        sp["attenuation"][c] = max(sp["attenuation"][c], float(gn["attenuation"][0]), half["attenuation"])
+        for k in ("backscatter", "veil_at_length", "veil"):
+            sp[k][c] = float(np.hypot(gn[k][0], half[k]))
+        tied.append(True)
+    out["rate_tied"] = tied
 
 
 def _bootstrap(refit, pt: torch.Tensor, n: int, rounds: int, seed: int) -> dict:

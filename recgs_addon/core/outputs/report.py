@@ -276,6 +276,16 @@ def _water_prior(medium: dict) -> list[str]:
     return ["", text]
 
 
+def _water_rate_tied(medium: dict) -> list[str]:
+    """Which channels' backscatter rate the survey left free and the fit tied to the attenuation."""
+    tied = [n for n, t in zip(("red", "green", "blue"), medium.get("rate_tied") or []) if t]
+    if not tied:
+        return []
+    return ["", f"The survey leaves the backscatter rate of {', '.join(tied)} free (seen from one range, a "
+                "brighter veil that builds up more slowly fits as well): it is tied to that channel's attenuation, "
+                "as in the textbook model of the water, and its veil's error bar covers a rate twice or half that."]
+
+
 def _rgb3(v) -> str:
     return " / ".join(f"{x:.3f}" for x in v)
 
@@ -304,7 +314,8 @@ def _water_section(medium: dict) -> list[str]:
     if pre:
         lines.append(f"| from the sparse points, before training | {_rgb3(pre['attenuation'])} | "
                      f"{_rgb3(pre['backscatter'])} | {_rgb3(pre['veil'])} |")
-    lines += _water_pinning(medium) + _water_prior(medium) + _water_under_light(medium) + _water_kept(medium)
+    lines += (_water_pinning(medium) + _water_prior(medium) + _water_rate_tied(medium) + _water_under_light(medium)
+              + _water_kept(medium))
     if medium.get("cues"):
         lines += ["", "Where the fit disagrees with what natural waters and seabeds look like (said, not overruled):", ""]
         lines += [f"- {c[0].upper() + c[1:]}." for c in medium["cues"]]

@@ -194,7 +194,8 @@ def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, ro
     n = len(obs["points"])
     seen = torch.from_numpy(colour).float()
     fit = medium_fit.fit_water(point, n, rng, srgb_to_linear(seen).double().numpy(), length, rounds=rounds,
-                               moving_light=moving_light, natural_only=natural_only, lit=lit)
+                               moving_light=moving_light, natural_only=natural_only, lit=lit,
+                               tie_free_rates=PINNED)
     # no water: each point's median colour
     order = np.argsort(point, kind="stable")
     bounds = np.flatnonzero(np.diff(point[order])) + 1
@@ -224,7 +225,7 @@ def fit_from_points(obs: dict, length: float, max_observations: int = 12_000, ro
             "fit": {k: fit[k] for k in ("attenuation", "backscatter", "veil", "veil_at_length")},
             "J_mean": np.clip(j_seen, 0.0, 1.0).mean(0).tolist() if len(point) else [],
             "over_white": float((j_seen.max(1) > 1.0).mean()) if len(point) else 0.0,
-            "spread": fit.get("spread"),
+            "spread": fit.get("spread"), "rate_tied": fit.get("rate_tied"),
             "under_light": {k: fit[k] for k in ("under_light", "light_noise", "plain_attenuation") if k in fit} or None}
 
 
@@ -352,6 +353,8 @@ class MediumMixin:
         fit = fit_from_points(obs, prof["median_range"], device=self.device, moving_light=moving,
                               natural_only=c.medium == "auto")
         pins = pinning(fit)
+        if fit.get("rate_tied"):
+            self.medium_info["rate_tied"] = fit["rate_tied"]
         self.medium_info.update(prefit={k: round(fit[k], 3) if isinstance(fit[k], float) else fit[k]
                                         for k in ("error_plain", "error_water", "effect_levels", "observations",
                                                   "gain")},
