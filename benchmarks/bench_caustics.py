@@ -131,6 +131,11 @@ SURVEYS.update({
     # looks.json), which the caustic estimator gathers light from; training keeps the 64 keyframes
     "rows-looks": ROWS + ["--seed", "72", "--caustic-pattern", "refraction", "--caustic-strength", "0.8",
                           "--look-frames", "3"],
+    # ... the same rows without look frames (the sand and a few rocks: little relief), and over a
+    # reef (60 rocks): the bases tools/relight_survey.py puts lamps and waters over
+    "rows-72": ROWS + ["--seed", "72", "--caustic-pattern", "refraction", "--caustic-strength", "0.8"],
+    "rows-reef": ROWS + ["--seed", "73", "--rocks", "60", "--caustic-pattern", "refraction",
+                         "--caustic-strength", "0.8"],
 })
 # A dive survey in deep water lit by a lamp on the camera (tools/survey_lamp.py): no sunlight
 # caustics; clean/ holds the seabed under even light.

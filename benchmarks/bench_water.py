@@ -33,6 +33,15 @@
   trained from every pixel (``veil-trained``) or everything (``all-trained``, ``--pixel-runs``),
   from the same start, side by side.
 
+* **battery**: waters at one altitude. Each base (``--bases``: lawnmower rows flown at 2.5 m,
+  ``rows-72`` over sand and a few rocks, ``rows-reef`` over a reef) is relit under each water
+  (``--waters``: tools/survey_water.py's types, Jerlov's among them) by tools/relight_survey.py,
+  from its clean photos and (``--caustics``) from its photos under moving light; each item trains
+  at the defaults (``--mode 3dgs``, under light ``--mode recgs``), and each base's oracle once
+  (3DGS on ``clean/``, the true colour). Per item: held-out true colour against ``clean/`` and
+  its gap to the oracle, what the water decision said, and the fitted attenuation, backscatter
+  rate, veil and veil at the median range against the generator's, per channel.
+
 Surveys come from benchmarks/bench_caustics.py (generated once into OUT/surveys).
 """
 from __future__ import annotations
@@ -130,6 +139,78 @@ def runs(out: Path, minutes: float, surveys: list[str] | None = None) -> None:
         f = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
         print(f"| {r['survey']} | {r['run']} | {f(r['psnr_true'])} | {f(r['psnr_truecolour_photos'])} | "
               f"{r['gaussians']:,} | {r['steps']:,} |")
+
+
+#: The battery's waters (tools/survey_water.py) and bases (benchmarks/bench_caustics.py).
+BATTERY_WATERS = "coastal,clear,green,jerlov-I,jerlov-III,jerlov-1C,jerlov-3C,jerlov-5C,jerlov-7C"
+BATTERY_BASES = "rows-72"
+
+
+def relit(out: Path, base: str, water: str, light: bool) -> Path:
+    """Base survey ``base`` under ``water`` (from its photos under moving light with ``light``),
+    made once by tools/relight_survey.py into ``OUT/surveys/BASE+WATER[+light]``."""
+    import subprocess
+    d = out / "surveys" / f"{base}+{water}{'+light' if light else ''}"
+    if not (d / "sparse" / "0").is_dir():
+        src = survey_dir(out, base)
+        subprocess.run([sys.executable, str(ROOT / "tools" / "relight_survey.py"), str(src), str(d), "--water", water,
+                        "--from", "images" if light else "clean"], check=True, stdout=subprocess.DEVNULL)
+    return d
+
+
+def battery(out: Path, minutes: float, bases: list[str], waters: list[str], lights: list[bool]) -> list[dict]:
+    """See the module: ``--only battery``."""
+    import numpy as np
+
+    jobs = []
+    for base in bases:
+        jobs.append((base, None, False, survey_dir(out, base), "oracle", out / "water" / "battery" / base / "oracle"))
+        for water in waters:
+            for light in lights:
+                scene = relit(out, base, water, light)
+                jobs.append((base, water, light, scene, "recgs" if light else "3dgs",
+                             out / "water" / "battery" / scene.name / ("recgs" if light else "3dgs")))
+    with ThreadPoolExecutor(2) as pool:
+        results = list(pool.map(lambda j: run_method(j[3], j[5], j[4], minutes, ["--medium", "auto"], threads=1),
+                                jobs))
+    oracle = {j[0]: m.get("psnr_test_gt") for j, m in zip(jobs, results) if j[1] is None}
+    rows = []
+    for (base, water, light, scene, method, _), m in zip(jobs, results):
+        if water is None:
+            continue
+        truth = json.loads((scene / "survey.json").read_text())["water"]
+        med = m.get("medium") or {}
+        row = {"base": base, "water": water, "light": light, "method": method, "psnr_true": m.get("psnr_test_gt"),
+               "oracle": oracle[base], "steps": m.get("iterations"), "gaussians": m.get("gaussians"),
+               "job_over_limit": round(m["job_seconds"] / (60 * minutes), 3), "modelled": bool(med.get("kept")),
+               "reason": med.get("reason"), "rate_tied": med.get("rate_tied"),
+               "caustics": bool((m.get("light") or {}).get("caustics"))}
+        if med.get("coefficients"):
+            co = med["coefficients"]
+            row["coefficients"] = {k: [round(v, 4) for v in co[k]] for k in ("attenuation", "backscatter", "veil")}
+            row["errors"] = {k: [round(f / t - 1, 3) for f, t in zip(co[k], truth[v])] for k, v in
+                             (("attenuation", "attenuation_per_m"), ("backscatter", "backscatter_per_m"),
+                              ("veil", "veiling_light"))}
+            r0 = float(co["length"])   # the veil at the survey's median range, which one altitude pins best
+            at = lambda v, b: np.asarray(v) * -np.expm1(-np.asarray(b) * r0)   # noqa: E731
+            row["errors"]["veil_at_median_range"] = np.round(
+                at(co["veil"], co["backscatter"]) / at(truth["veiling_light"], truth["backscatter_per_m"]) - 1, 3).tolist()
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    (out / "water" / "battery.json").write_text(json.dumps(rows, indent=1))
+    pct = lambda v: "-" if v is None else " / ".join(f"{100 * x:+.0f}" for x in v)   # noqa: E731
+    f = lambda v: "-" if v is None else f"{v:.2f}"   # noqa: E731
+    print("\n| base | water | light | true colour (dB) | oracle | gap | steps | attenuation (%) | veil at the median "
+          "range (%) | veil (%) | backscatter (%) | rate tied |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        e = r.get("errors") or {}
+        gap = None if r["psnr_true"] is None or r["oracle"] is None else r["oracle"] - r["psnr_true"]
+        print(f"| {r['base']} | {r['water']} | {'yes' if r['light'] else 'no'} | {f(r['psnr_true'])} | {f(r['oracle'])} | "
+              f"{f(gap)} | {r['steps']:,} | {pct(e.get('attenuation'))} | {pct(e.get('veil_at_median_range'))} | "
+              f"{pct(e.get('veil'))} | {pct(e.get('backscatter'))} | "
+              f"{'' if not r['rate_tied'] else ', '.join('rgb'[c] for c, t in enumerate(r['rate_tied']) if t)} |")
+    return rows
 
 
 def decisions(out: Path, surveys: list[str] | None = None) -> None:
@@ -330,7 +411,12 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench")
     p.add_argument("--minutes", type=float, default=5.0)
-    p.add_argument("--only", choices=("runs", "decisions", "step", "identify", "passes", "pixels"), default=None)
+    p.add_argument("--only", choices=("runs", "decisions", "step", "identify", "passes", "pixels", "battery"),
+                   default=None)
+    p.add_argument("--bases", default=BATTERY_BASES, help="battery: the base surveys (comma-separated)")
+    p.add_argument("--waters", default=BATTERY_WATERS, help="battery: the waters (comma-separated)")
+    p.add_argument("--caustics", choices=("no", "yes", "both"), default="no",
+                   help="battery: the waters over the clean photos, over the photos under moving light, or both")
     p.add_argument("--pixel-runs", default="points-kept,veil-trained", help="pixels: which (comma-separated)")
     p.add_argument("--surveys", default="", help="runs and decisions: these surveys only (comma-separated)")
     a = p.parse_args()
@@ -345,6 +431,9 @@ def main() -> int:
         runs(a.out, a.minutes, surveys)
     if a.only in (None, "passes"):
         pass_water(a.out, a.minutes)
+    if a.only == "battery":   # its own runs (an hour and more): asked for by name only
+        battery(a.out, a.minutes, a.bases.split(","), a.waters.split(","),
+                {"no": [False], "yes": [True], "both": [False, True]}[a.caustics])
     if a.only in (None, "pixels"):
         for survey in surveys or ["level-reef-water"]:
             pixels(a.out, a.minutes, survey, a.pixel_runs.split(","))

@@ -13,7 +13,9 @@ at the nominal range); one more, ``--lamp-offset``, moves the lamp from the came
 
     .venv/bin/python tools/relight_survey.py out/bench/surveys/rows-looks OUT --lamp --lamp-beam 15
 
-The source's caustics are not carried over (``clean/`` has none), nor its look frames.
+The source's caustics are not carried over (``clean/`` has none) unless ``--from images`` relights
+the source's own photos (the caustic light falls on the seabed before the water acts on it);
+its look frames are not carried over.
 """
 from __future__ import annotations
 
@@ -62,6 +64,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--lamp-offset", default=",".join(f"{v:g}" for v in LAMP_OFFSET),
                    help="the lamp's place from the camera centre, 'x,y,z' metres in camera axes (x right, y down)")
     p.add_argument("--vignette", type=float, default=0.0, help="the lens's fall-off (1 + s rho^2)^-2")
+    p.add_argument("--from", dest="source_photos", choices=("clean", "images"), default="clean",
+                   help="the photos relit: the evenly lit truth (clean/, default) or the source's own photos "
+                        "(images/: its caustics kept, under the water as caustic light is)")
     p.add_argument("--water", choices=("none",) + tuple(WATER_TYPES), default="none")
     p.add_argument("--water-attenuation", default="")
     p.add_argument("--water-backscatter", default="")
@@ -101,7 +106,7 @@ def main(argv=None) -> int:
         fx, fy, cx, cy = cam.params[:4]
         w, h = cam.width, cam.height
         depth = np.load(src / "depth" / (Path(img.name).stem + ".npy"))
-        lin = srgb8_to_linear(_read(src / "clean" / img.name))
+        lin = srgb8_to_linear(_read(src / args.source_photos / img.name))
         if args.lamp or args.vignette:
             lin = lin * lamp_light(args, SimpleNamespace(width=w, height=h, fx=fx, fy=fy, cx=cx, cy=cy), depth)
         if args.water_model is not None:
@@ -123,7 +128,7 @@ def main(argv=None) -> int:
             pt.color = np.round(col_sum[pid] / col_n[pid]).astype(np.uint8)
     (out / "sparse" / "0").mkdir(parents=True)
     rec.write(str(out / "sparse" / "0"))
-    relit = {"from": str(src), "lamp": args.lamp, "beam_deg": args.lamp_beam, "tilt_deg": args.lamp_tilt,
+    relit = {"from": str(src), "photos": args.source_photos, "lamp": args.lamp, "beam_deg": args.lamp_beam, "tilt_deg": args.lamp_tilt,
              "offset_m": list(args.lamp_offset), "vignette": args.vignette, "nominal_range_m": r0,
              "water": args.water_model}
     meta["relit"] = relit

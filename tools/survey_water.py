@@ -25,7 +25,9 @@ Water types
 (Jerlov's clear oceanic type I-II and coastal type 3-5, red attenuated most; the coastal water's
 chlorophyll and dissolved matter take blue too, leaving it green), with the veiling light's colour
 in the scene's linear units. ``--water-attenuation``, ``--water-backscatter`` and
-``--water-colour`` override them.
+``--water-colour`` override them. ``--water green`` is a green coastal water behind a bright,
+slowly building veil; ``--water jerlov-TYPE`` (I, III, 1C, 3C, 5C, 7C) follows Jerlov's types
+(:func:`_jerlov_types`).
 """
 from __future__ import annotations
 
@@ -35,7 +37,39 @@ import numpy as np
 WATER_TYPES = {
     "clear": ((0.40, 0.085, 0.06), (0.06, 0.08, 0.10), (0.004, 0.045, 0.110)),
     "coastal": ((0.50, 0.22, 0.34), (0.30, 0.34, 0.30), (0.012, 0.085, 0.065)),
+    # green coastal water with a bright, slowly building veil (the level reef surveys')
+    "green": ((0.50, 0.12, 0.18), (0.40, 0.18, 0.22), (0.03, 0.20, 0.22)),
 }
+#: Jerlov's types the battery of waters spans, with each one's backscatter rate over its
+#: attenuation (natural waters do not keep them equal: the battery strays both ways).
+JERLOV_BATTERY = {"I": 1.5, "III": 0.7, "1C": 1.2, "3C": 0.8, "5C": 1.4, "7C": 1.0}
+#: The veil's brightest channel (linear) in the Jerlov waters, and the depth (m) whose ambient
+#: light gives its colour (the light left after that much water, scattered back).
+JERLOV_VEIL = (0.12, 4.0)
+
+
+def _jerlov_types() -> dict:
+    """``jerlov-TYPE`` waters: the attenuation of Jerlov's type through a camera's three bands
+    (recgs_addon/core/model/jerlov.py), the backscatter rate a multiple of it
+    (:data:`JERLOV_BATTERY`, a little more in red and less in blue), and a veil the colour of the
+    ambient light at :data:`JERLOV_VEIL`'s depth."""
+    import sys
+    from pathlib import Path
+    root = str(Path(__file__).resolve().parents[1])
+    if root not in sys.path:
+        sys.path.insert(0, root)
+    from recgs_addon.core.model import jerlov
+    rows = jerlov.locus()
+    out = {}
+    for name, ratio in JERLOV_BATTERY.items():
+        att = rows[jerlov.TYPES.index(name)]
+        ambient = np.exp(-att * JERLOV_VEIL[1])
+        out[f"jerlov-{name}"] = (tuple(np.round(att, 4)), tuple(np.round(ratio * att * (1.1, 1.0, 0.9), 4)),
+                                 tuple(np.round(JERLOV_VEIL[0] * ambient / ambient.max(), 4)))
+    return out
+
+
+WATER_TYPES.update(_jerlov_types())
 
 
 def water_coefficients(kind: str, attenuation: str = "", backscatter: str = "", colour: str = "") -> dict | None:
