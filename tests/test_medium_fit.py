@@ -335,12 +335,42 @@ def test_the_fit_under_light_gives_still_light_its_water_too():
     assert _relative_error(f["attenuation"]).max() < 0.05, f["attenuation"]
 
 
+def test_under_moving_light_a_rate_one_altitude_leaves_free_is_tied_to_the_attenuation():
+    """Under caustics at one altitude (ranges within x1.2) the fit under light, with the rate
+    searched, slides along the line the survey leaves free (the veil at the median range right,
+    its growth with range and the seabed's fall-off traded: green and blue read far too low).
+    Where the refits leave a rate loose, every channel's rate is tied to its attenuation: each
+    attenuation comes out nearer the truth, its error bars cover the truth, and the tied rates
+    equal the attenuation. Seen from ranges x3 apart the survey pins the rates: no tie."""
+    truth = {"attenuation": [0.5, 0.12, 0.18], "backscatter": [0.4, 0.18, 0.22], "veil": [0.03, 0.2, 0.22]}
+    point, rng, y, _ = _observations(n=1500, per=10, spread=1.2, near=(2.3, 2.7), light=0.9, noise=0.002,
+                                     water=truth, seed=31)
+    n, length = int(point.max()) + 1, float(np.median(rng))
+    free = medium_fit.fit_water(point, n, rng, y, length, rounds=4, moving_light=True)
+    tied = medium_fit.fit_water(point, n, rng, y, length, rounds=4, moving_light=True,
+                                tie_free_rates=water.PINNED)
+    assert free["under_light"] and tied["under_light"]
+    assert tied["rate_tied"] == [True, True, True], (free["backscatter"], free["spread"]["backscatter"])
+    assert np.allclose(tied["backscatter"], tied["attenuation"], rtol=0.01)   # to the round before it settled
+    err_free = np.abs(np.asarray(free["attenuation"]) - truth["attenuation"])
+    err_tied = np.abs(np.asarray(tied["attenuation"]) - truth["attenuation"])
+    assert (err_tied < err_free).all(), (tied["attenuation"], free["attenuation"])
+    assert (err_tied < 2.5 * np.asarray(tied["spread"]["attenuation"])).all(), (tied["attenuation"], tied["spread"])
+    # the survey pins the rates where the ranges are x3 apart
+    point, rng, y, _ = _observations(n=1500, per=10, spread=3.0, near=(1.5, 2.0), light=0.9, noise=0.002,
+                                     water=truth, seed=32)
+    f = medium_fit.fit_water(point, int(point.max()) + 1, rng, y, float(np.median(rng)), rounds=4,
+                             moving_light=True, tie_free_rates=water.PINNED)
+    assert f["under_light"] and f["rate_tied"] == [False, False, False], (f["backscatter"], f["spread"])
+    assert np.allclose(f["backscatter"], truth["backscatter"], rtol=0.1), f["backscatter"]
+
+
 def test_caustics_without_water_read_no_water():
     """Under caustics in clear air (no water at all), whichever fit is kept reads no attenuation
     beyond its error bars: the light is not taken for water."""
     point, rng, y, _ = _observations(n=1500, per=10, light=0.9, noise=0.002, water=None, seed=23)
     f = medium_fit.fit_water(point, int(point.max()) + 1, rng, y, float(np.median(rng)), rounds=4,
-                             moving_light=True)
+                             moving_light=True, tie_free_rates=water.PINNED)   # as the job fits
     fit = {"fit": {k: f[k] for k in ("attenuation", "backscatter", "veil", "veil_at_length")}, "spread": f["spread"],
            "effect_levels": 10.0}
     shown, why = water.decide(fit, water.pinning(fit))

@@ -59,6 +59,10 @@ LOG_FLOOR = 0.05
 #: ... rounds with the veil's rate tied to the attenuation, then with it searched.
 TIED_ROUNDS = 3
 FREE_ROUNDS = 2
+#: ... rounds with the rate tied where the survey leaves it free (:func:`tie_rates_under_light`),
+#: ended sooner where every attenuation moves by less than :data:`SETTLED` of the largest.
+TIED_ONLY_ROUNDS = 12
+SETTLED = 1e-3
 #: ... Levenberg-Marquardt's steps in each reweighting round of the log ratios' fit.
 LM_STEPS = 30
 #: ... the channel whose log slope gives the attenuation common to all (green: the brightest
@@ -362,35 +366,44 @@ class _LightFit:
         total = _robust_scale(grey, keep)
         return float(np.sqrt(max(total ** 2 - noise ** 2, 0.0))), float(noise)
 
-    def run(self, attenuation, v_len, rate=None, tied: int = TIED_ROUNDS, free: int = FREE_ROUNDS):
+    def run(self, attenuation, v_len, rate=None, tied: int = TIED_ROUNDS, free: int = FREE_ROUNDS,
+            factor: float = 1.0):
+        """``tied`` rounds with the veil's rate ``factor`` times the attenuation (fewer where the
+        attenuation has settled), then ``free`` with it searched."""
         att = torch.as_tensor(attenuation, dtype=torch.float64)
         v_len = torch.minimum(torch.as_tensor(v_len, dtype=torch.float64).clamp_min(1e-6), 0.99 * self.cap)
         bounds = (RATE_RANGE[0] / self.length, RATE_RANGE[1] / self.length)
-        for k in range(tied + free):
+        k = 0
+        while k < tied + free:
             if k < tied or rate is None:
-                rate = att.clamp(*bounds)
+                rate = (factor * att).clamp(*bounds)
             diff = att[self.others] - att[REFERENCE]
             v_len, diff, rate = self.fit_chroma(v_len, diff, rate, free=k >= tied)
             ref = self.log_slope(v_len, rate)
-            att = torch.empty(3, dtype=torch.float64)
+            last, att = att, torch.empty(3, dtype=torch.float64)
             att[REFERENCE] = ref
             att[self.others] = diff + ref
+            k += 1
+            if k < tied and float((att - last).abs().max()) <= SETTLED * float(att.abs().max()):
+                k = tied
         return att, v_len, rate
 
 
 def fit_under_light(point, n: int, rng, colour_lin, length: float, start: dict, w=None,
-                    tied: int = TIED_ROUNDS, free: int = FREE_ROUNDS) -> dict:
+                    tied: int = TIED_ROUNDS, free: int = FREE_ROUNDS, factor: float = 1.0) -> dict:
     """The water under light that moves over the seabed (module docstring), from the fit
-    ``start`` (:func:`fit_water`'s: attenuation, backscatter, veil_at_length per channel).
-    Returns per channel ``attenuation``, ``backscatter`` (the veil's rate), ``veil_at_length``
-    and ``veil``, and ``J`` (n, 3) each point's linear colour under the light's mean."""
+    ``start`` (:func:`fit_water`'s: attenuation, backscatter, veil_at_length per channel), with
+    ``tied`` rounds of the veil's rate ``factor`` times the attenuation and ``free`` rounds of
+    it searched (:meth:`_LightFit.run`). Returns per channel ``attenuation``, ``backscatter``
+    (the veil's rate), ``veil_at_length`` and ``veil``, and ``J`` (n, 3) each point's linear
+    colour under the light's mean."""
     pt = torch.as_tensor(np.asarray(point, np.int64))
     r = torch.as_tensor(np.asarray(rng, np.float64))
     y = torch.as_tensor(np.asarray(colour_lin, np.float64))
     w = torch.ones(len(r), dtype=torch.float64) if w is None else torch.as_tensor(w, dtype=torch.float64)
     lf = _LightFit(pt, n, r, y, length, w)
     rate0 = None if tied else torch.as_tensor(start["backscatter"], dtype=torch.float64)
-    att, v_len, rate = lf.run(start["attenuation"], start["veil_at_length"], rate0, tied, free)
+    att, v_len, rate = lf.run(start["attenuation"], start["veil_at_length"], rate0, tied, free, factor)
     with torch.no_grad():   # the colours under the light's mean: least squares with the water fixed
         a = torch.exp(-att * r[:, None])
         z = lf.seabed(v_len, rate)
@@ -399,6 +412,13 @@ def fit_under_light(point, n: int, rng, colour_lin, length: float, start: dict, 
     return {"attenuation": att.tolist(), "backscatter": rate.tolist(), "veil_at_length": v_len.tolist(),
             "veil": [veil_from(b, v, length) for b, v in zip(rate.tolist(), v_len.tolist())], "J": j.numpy(),
             "light_noise": [light, noise], "veil_bound": (v_len / lf.cap).tolist()}
+
+
+def _light_shows(fit: dict) -> bool:
+    """Whether a fit under light is to be used (:func:`fit_water`): the light's spread from view
+    to view at least :data:`LIGHT_OVER_NOISE` times the photos' noise and every channel's veil
+    below :data:`VEIL_BOUND` of its bound."""
+    return fit["light_noise"][0] >= LIGHT_OVER_NOISE * fit["light_noise"][1] and max(fit["veil_bound"]) < VEIL_BOUND
 
 
 def unnatural(attenuation, spread=None) -> Optional[str]:
@@ -448,9 +468,10 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     grey gain on each observation's seabed part (a lamp's light; :func:`fit_channel`), not
     with ``moving_light``.
 
-    ``tie_free_rates`` (with ``rounds``, not under moving light): a channel whose backscatter
-    rate the refits leave looser than this (their spread over its value) is fitted again with the
-    rate tied to its attenuation (:func:`tie_free_rates_of`); ``"rate_tied"`` says which."""
+    ``tie_free_rates`` (with ``rounds``): a channel whose backscatter rate the refits leave looser
+    than this (their spread over its value) is fitted again with the rate tied to its attenuation
+    (:func:`tie_free_rates_of`; under moving light every channel's, :func:`tie_rates_under_light`);
+    ``"rate_tied"`` says which."""
     if lit is not None and moving_light:
         raise ValueError("a known gain on the seabed and light that moves over it are not fitted together")
     pt = torch.from_numpy(np.asarray(point, np.int64))
@@ -468,8 +489,7 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
     light = None
     if moving_light:
         light = fit_under_light(pt, n, r, y, length, out)
-        shown = (light["light_noise"][0] >= LIGHT_OVER_NOISE * light["light_noise"][1]
-                 and max(light["veil_bound"]) < VEIL_BOUND)
+        shown = _light_shows(light)
         out.update({"under_light": shown, "light_noise": light["light_noise"], "veil_bound": light["veil_bound"],
                     "plain_attenuation": list(out["attenuation"])})
         if shown:
@@ -485,6 +505,8 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
         boot = _bootstrap(lambda w: fit_under_light(pt[sub], n, r[sub], y[sub], length, light, w, tied=0, free=1),
                           pt[sub], n, rounds, seed)
         out["spread"] = {k: (v * np.sqrt(len(sub) / len(pt))).tolist() for k, v in boot.items()}
+        if tie_free_rates is not None:
+            tie_rates_under_light(out, pt, n, r, y, length, tie_free_rates, sub, rounds, seed)
     else:
         boot = _bootstrap(lambda w: _collect([fit_channel(pt[sub], n, r[sub], y[sub, c], length, w,
                                                           start=(f["attenuation"], f["backscatter"],
@@ -541,6 +563,41 @@ def tie_free_rates_of(out: dict, pt, n: int, r, y, length: float, loose: float, 
             sp[k][c] = float(np.hypot(gn[k][0], half[k]))
         tied.append(True)
     out["rate_tied"] = tied
+
+
+def tie_rates_under_light(out: dict, pt, n: int, r, y, length: float, loose: float, sub, rounds: int,
+                          seed: int) -> None:
+    """:func:`tie_free_rates_of` for the fit under light, in place in :func:`fit_water`'s ``out``
+    (the fit under light's, with its ``spread``): where the refits leave any channel's rate
+    looser than ``loose``, every channel is fitted again with its rate equal to its attenuation
+    until the attenuation settles (the channels are fitted together: their log ratios pin the
+    veils). At one altitude the veil's growth with range and the seabed's fall-off trade off
+    here as without the light: searched, the rates ran to their bounds (a coastal water's red
+    and green at the lowest, the veil growing as a line) or drifted with the veil (a green
+    water's green and blue attenuation read 57 and 54 % low, its rates twice the truth); tied
+    and settled, those waters read -16 / -14 / -17 % and -2 / +15 / +9 %. The error bars are
+    the tied fit's refits (on the same subset and scaled as the fit's) with the fits at the
+    rate :data:`RATE_PRIOR_WIDTH` times and a fraction of the attenuation. Where the tied fit
+    fails the fit under light's own checks (the light over the noise, the veil below its
+    bound) the free fit stays."""
+    sd, v = out["spread"]["backscatter"], out["backscatter"]
+    out["rate_tied"] = [False] * 3
+    if not any(s > loose * max(abs(b), 1e-9) for s, b in zip(sd, v)):
+        return
+    fit = lambda start, w=None, tied=TIED_ONLY_ROUNDS, factor=1.0, on=slice(None): fit_under_light(  # noqa: E731
+        pt[on], n, r[on], y[on], length, start, w, tied=tied, free=0, factor=factor)
+    tied = fit(out)
+    if not _light_shows(tied):
+        return
+    ends = [fit(tied, factor=k, on=sub) for k in (RATE_PRIOR_WIDTH, 1.0 / RATE_PRIOR_WIDTH)]
+    boot = _bootstrap(lambda w: fit(tied, w, tied=1, on=sub), pt[sub], n, rounds, seed)
+    scale = np.sqrt(len(sub) / len(pt))
+    out.update({k: tied[k] for k in ("attenuation", "backscatter", "veil_at_length", "veil", "J", "light_noise",
+                                     "veil_bound")})
+    out["spread"] = {k: np.hypot(boot[k] * scale,
+                                 0.5 * np.abs(np.asarray(ends[0][k]) - np.asarray(ends[1][k]))).tolist()
+                     for k in boot}
+    out["rate_tied"] = [True] * 3
 
 
 def _bootstrap(refit, pt: torch.Tensor, n: int, rounds: int, seed: int) -> dict:

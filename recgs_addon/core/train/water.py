@@ -372,17 +372,25 @@ class MediumMixin:
         # where caustics were found the points' fit measured the light (6-11 % off where the plain
         # fit read 26-48 %); trained from every pixel instead, the true colour came out 1.3-1.4 dB
         # lower (benchmarks/RESULTS.md#water-one-altitude, #water-under-light)
-        kept = [p == "pinned" for p in pins["attenuation"]]
+        # under moving light the loose channels too: training's frames carry the light's own
+        # brightness over each frame, which takes the water's fall-off with range where the
+        # points' fit measures the light apart (tied rates, green water: 0.49 / 0.14 / 0.20
+        # from the points for 0.50 / 0.12 / 0.18, trained from pixels 0.49 / 0.05 / 0.09)
+        under = bool((fit.get("under_light") or {}).get("under_light"))
+        kept = [p == "pinned" or (under and p == "loose") for p in pins["attenuation"]]
         self.medium_info["attenuation_kept"] = kept
         self.medium_info["attenuation_from_points"] = all(kept)
         # the veil too where the survey pins its value over the ranges seen (its rate may be free:
         # then the ranges seen do not depend on it)
         self.medium_info["veil_kept"] = [KEEP_VEIL and k and p != "free"
                                          for k, p in zip(kept, pins["veil_at_length"])]
-        names = [n for n, k in zip(CHANNELS, kept) if k]
+        names = [n for n, p in zip(CHANNELS, pins["attenuation"]) if p == "pinned"]
+        loose = [n for n, p, k in zip(CHANNELS, pins["attenuation"], kept) if k and p != "pinned"]
         self.medium_info.update(fitted=True, kept=True, reason=(
             f"{why}; the survey pins the attenuation of {', '.join(names) if names else 'no channel'} within "
-            f"{100 * PINNED:.0f} %"))
+            f"{100 * PINNED:.0f} %" + (f", and within {100 * LOOSE:.0f} % that of {', '.join(loose)}, kept as "
+                                       "the points give it: under moving light training cannot tell the water's "
+                                       "fall-off from the light" if loose else "")))
         self._hold_points_water()
 
     def _natural_prior(self, fit: dict, pins: dict) -> None:
