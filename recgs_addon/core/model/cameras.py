@@ -80,6 +80,15 @@ class Camera:
         """
         return project_points(points, self.R, self.t, self.K)
 
+    def in_view(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The world points (N, 3) in front of the camera and inside its image (no occlusion
+        test): their indices (K,), pixel coordinates ``u``, ``v`` (K,) as :meth:`project`
+        gives them, and ranges (K,), the distance from the camera's centre."""
+        pc = np.asarray(points, np.float64) @ self.R.T + self.t
+        (u, v), z = project_points(points, self.R, self.t, self.K)[0].T, pc[:, 2]
+        seen = np.flatnonzero((z > 1e-6) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height))
+        return seen, u[seen], v[seen], np.linalg.norm(pc[seen], axis=1)
+
     def scaled(self, factor: float) -> "Camera":
         """The same view at ``1/factor`` resolution (integer sizes, intrinsics scaled to match)."""
         return self.resized(max(1, int(round(self.width / factor))), max(1, int(round(self.height / factor))))

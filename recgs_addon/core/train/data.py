@@ -119,17 +119,11 @@ class TrainData:
         num, den, lights = np.zeros((len(pts), 3)), np.zeros(len(pts)), []
         for i in ids:
             cam, img = self.view(i, 1)
-            pc = pts @ cam.R.T + cam.t
-            z = pc[:, 2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = cam.fx * pc[:, 0] / z + cam.cx
-                v = cam.fy * pc[:, 1] / z + cam.cy
-            seen = np.flatnonzero((z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height))
+            seen, u, v, rng = cam.in_view(pts)
             if not seen.size:
                 continue
-            g = np.ones(seen.size) if gain is None else np.asarray(
-                gain(cam, u[seen], v[seen], np.linalg.norm(pc[seen], axis=1)), np.float64)
-            px = img[torch.from_numpy(v[seen].astype(np.int64)), torch.from_numpy(u[seen].astype(np.int64))]
+            g = np.ones(seen.size) if gain is None else np.asarray(gain(cam, u, v, rng), np.float64)
+            px = img[torch.from_numpy(v.astype(np.int64)), torch.from_numpy(u.astype(np.int64))]
             num[seen] += g[:, None] * srgb_to_linear(px.cpu().double()).numpy()
             den[seen] += g * g
             lights.append(g)

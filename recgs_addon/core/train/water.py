@@ -102,14 +102,9 @@ def _observations(data, max_points: int = 6000) -> dict:
     views = []
     for i in data.train_ids:
         cam = data.camera(i, 1)
-        pc = pts @ cam.R.T + cam.t
-        z = pc[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = cam.fx * pc[:, 0] / z + cam.cx
-            v = cam.fy * pc[:, 1] / z + cam.cy
-        seen = np.flatnonzero((z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height))
+        seen, u, v, rng = cam.in_view(pts)
         if seen.size:
-            views.append((i, cam, seen, u[seen], v[seen], np.linalg.norm(pc[seen], axis=1)))
+            views.append((i, cam, seen, u, v, rng))
     cat = (lambda k, empty: np.concatenate([w[k] for w in views]) if views else empty)  # noqa: E731
     return {"points": pick, "views": views, "point": cat(2, np.zeros(0, np.int64)), "range": cat(5, np.zeros(0))}
 
