@@ -584,8 +584,9 @@ def tie_rates_under_light(out: dict, pt, n: int, r, y, length: float, loose: flo
     out["rate_tied"] = [False] * 3
     if not any(s > loose * max(abs(b), 1e-9) for s, b in zip(sd, v)):
         return
-    fit = lambda start, w=None, tied=TIED_ONLY_ROUNDS, factor=1.0, on=slice(None): fit_under_light(  # noqa: E731
-        pt[on], n, r[on], y[on], length, start, w, tied=tied, free=0, factor=factor)
+    def fit(start, w=None, tied=TIED_ONLY_ROUNDS, factor=1.0, on=slice(None)):
+        return fit_under_light(pt[on], n, r[on], y[on], length, start, w, tied=tied, free=0, factor=factor)
+
     tied = fit(out)
     if not _light_shows(tied):
         return
