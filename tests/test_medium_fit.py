@@ -225,6 +225,22 @@ def test_water_is_modelled_where_the_attenuation_is_coloured_clear_of_its_error_
     assert not shown and "too weak to matter" in why
 
 
+def test_the_channels_apart_are_judged_by_the_spread_of_their_difference_where_the_refits_give_it():
+    """Under moving light the channels share the light's noise: each channel's attenuation is
+    loose while their differences are sure. The decision takes the refits' spread of the
+    difference where the fit gives it (0.146 apart at 0.013 is water), the channels' own spreads
+    together where not (the same values 2.6 of them apart are not)."""
+    f = _fit_dict([0.357, 0.211, 0.316], [0.044, 0.034, 0.044])
+    shown, why = water.decide(f, water.pinning(f))
+    assert not shown and "alike in every channel" in why
+    f["spread"]["difference"] = [0.013, 0.002, 0.011]   # red - green, red - blue, green - blue
+    shown, why = water.decide(f, water.pinning(f))
+    assert shown and "show water" in why
+    f["spread"]["difference"] = [0.05, 0.002, 0.011]    # the pair that decides is red and green
+    shown, why = water.decide(f, water.pinning(f))
+    assert not shown and "alike in every channel" in why
+
+
 def test_water_that_would_leave_the_seabed_brighter_than_white_is_no_water():
     """A lamp's fall-off with range taken for water: the fit's attenuation is coloured, pinned
     and like a natural water's, but it leaves most points brighter than white once taken out of
@@ -356,6 +372,10 @@ def test_under_moving_light_a_rate_one_altitude_leaves_free_is_tied_to_the_atten
     err_tied = np.abs(np.asarray(tied["attenuation"]) - truth["attenuation"])
     assert (err_tied < err_free).all(), (tied["attenuation"], free["attenuation"])
     assert (err_tied < 2.5 * np.asarray(tied["spread"]["attenuation"])).all(), (tied["attenuation"], tied["spread"])
+    # the channels share the light's noise: their differences are surer than each channel
+    sd = np.asarray(tied["spread"]["attenuation"])
+    for (a, b), sd_pair in zip(medium_fit.PAIRS, tied["spread"]["difference"]):
+        assert sd_pair < np.hypot(sd[a], sd[b]), (tied["spread"]["difference"], sd)
     # the survey pins the rates where the ranges are x3 apart
     point, rng, y, _ = _observations(n=1500, per=10, spread=3.0, near=(1.5, 2.0), light=0.9, noise=0.002,
                                      water=truth, seed=32)

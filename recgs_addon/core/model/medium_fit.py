@@ -516,7 +516,7 @@ def fit_water(point: np.ndarray, n: int, rng: np.ndarray, colour_lin: np.ndarray
         # refits started from the fit cannot leave a flat valley: the spread is at least the
         # Gauss-Newton standard error (infinite where nothing pins a number)
         gn = _gauss_newton_spread(fits, length)
-        out["spread"] = {k: np.maximum(boot[k], gn[k]).tolist() for k in boot}
+        out["spread"] = {k: np.maximum(boot[k], gn[k]).tolist() for k in gn}
         if tie_free_rates is not None:
             tie_free_rates_of(out, pt[sub], n, r[sub], y[sub], length, tie_free_rates, gs)
     out["rounds"] = rounds
@@ -595,23 +595,37 @@ def tie_rates_under_light(out: dict, pt, n: int, r, y, length: float, loose: flo
     scale = np.sqrt(len(sub) / len(pt))
     out.update({k: tied[k] for k in ("attenuation", "backscatter", "veil_at_length", "veil", "J", "light_noise",
                                      "veil_bound")})
+    for e in ends:
+        e["difference"] = differences(e["attenuation"])
     out["spread"] = {k: np.hypot(boot[k] * scale,
                                  0.5 * np.abs(np.asarray(ends[0][k]) - np.asarray(ends[1][k]))).tolist()
                      for k in boot}
     out["rate_tied"] = [True] * 3
 
 
+#: The pairs of channels whose difference in attenuation the refits' ``"difference"`` gives.
+PAIRS = ((0, 1), (0, 2), (1, 2))
+
+
+def differences(attenuation) -> list[float]:
+    """The channels' differences in attenuation, red - green, red - blue, green - blue."""
+    return [float(attenuation[a]) - float(attenuation[b]) for a, b in PAIRS]
+
+
 def _bootstrap(refit, pt: torch.Tensor, n: int, rounds: int, seed: int) -> dict:
     """The standard deviation of ``refit(w)``'s coefficients over ``rounds`` draws of the points
     with replacement (``w``: each observation's weight, its point's count in the draw; the
-    points, not the observations, are the independent draws)."""
+    points, not the observations, are the independent draws), and of the channels'
+    differences in attenuation (``"difference"``, :data:`PAIRS`: under moving light the channels
+    share the light's noise, and their differences are surer than each)."""
     gen = torch.Generator().manual_seed(seed)
     used = torch.unique(pt)
-    draws = {k: [] for k in ("attenuation", "backscatter", "veil", "veil_at_length")}
+    draws = {k: [] for k in ("attenuation", "backscatter", "veil", "veil_at_length", "difference")}
     for _ in range(rounds):
         pick = used[torch.randint(len(used), (len(used),), generator=gen)]
         count = torch.zeros(n, dtype=torch.float64).index_add_(0, pick, torch.ones(len(pick), dtype=torch.float64))
-        refitted = refit(count[pt])
+        refitted = dict(refit(count[pt]))
+        refitted["difference"] = differences(refitted["attenuation"])
         for k in draws:
             draws[k].append(refitted[k])
     return {k: np.std(np.asarray(v, np.float64), axis=0, ddof=1) for k, v in draws.items()}

@@ -264,8 +264,9 @@ def decide(fit: dict, pins: dict) -> tuple[bool, str]:
     attenuation like a natural water's (none below 0, red above green:
     ``medium_fit.unnatural``), the points' true colours no brighter than white (at most
     :data:`MAX_OVER_WHITE` of them), the channels' as far apart (water takes red first; a fall-off
-    alike in every channel is the light's), and a change to the points' colours of
-    :data:`MIN_EFFECT` levels."""
+    alike in every channel is the light's; the difference's error bar the refits' own where they
+    give it: under moving light the channels share the light's noise), and a change to the
+    points' colours of :data:`MIN_EFFECT` levels."""
     att = np.asarray(fit["fit"]["attenuation"])
     if not fit.get("spread"):   # the fit ended before its refits: no natural water
         return False, (f"the water fitted to the sparse points (attenuation {_rgb(att)} per unit of range) is unlike "
@@ -286,7 +287,10 @@ def decide(fit: dict, pins: dict) -> tuple[bool, str]:
                        f"{100 * over:.0f} % of them brighter than white once taken out of it, and no seabed is: their "
                        "colours fall off with range for another reason (a lamp's light, the exposure): no water model")
     hi, lo = int(att.argmax()), int(att.argmin())
-    z_colour = (att[hi] - att[lo]) / max(float(np.hypot(sd[hi], sd[lo])), 1e-12)
+    pair = fit["spread"].get("difference")   # the refits' own spread of the difference, where they give it
+    sd_pair = (pair[medium_fit.PAIRS.index((min(hi, lo), max(hi, lo)))] if pair is not None and hi != lo
+               else float(np.hypot(sd[hi], sd[lo])))
+    z_colour = abs(att[hi] - att[lo]) / max(sd_pair, 1e-12)
     if z_colour < MIN_Z:
         return False, (f"the sparse points' colours fall off with range alike in every channel (attenuation "
                        f"{_rgb(att)} per unit of range, the channels {z_colour:.1f} error bars apart, needs "
