@@ -128,8 +128,8 @@ def main(argv=None) -> int:
             pt.color = np.round(col_sum[pid] / col_n[pid]).astype(np.uint8)
     (out / "sparse" / "0").mkdir(parents=True)
     rec.write(str(out / "sparse" / "0"))
-    relit = {"from": str(src), "photos": args.source_photos, "lamp": args.lamp, "beam_deg": args.lamp_beam, "tilt_deg": args.lamp_tilt,
-             "offset_m": list(args.lamp_offset), "vignette": args.vignette, "nominal_range_m": r0,
+    relit = {"from": str(src), "photos": args.source_photos, "lamp": args.lamp, "beam_deg": args.lamp_beam,
+             "tilt_deg": args.lamp_tilt, "offset_m": list(args.lamp_offset), "vignette": args.vignette, "nominal_range_m": r0,
              "water": args.water_model}
     meta["relit"] = relit
     meta["lamp"] = None if not (args.lamp or args.vignette) else {

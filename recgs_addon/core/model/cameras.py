@@ -85,7 +85,10 @@ class Camera:
         test): their indices (K,), pixel coordinates ``u``, ``v`` (K,) as :meth:`project`
         gives them, and ranges (K,), the distance from the camera's centre."""
         pc = np.asarray(points, np.float64) @ self.R.T + self.t
-        (u, v), z = project_points(points, self.R, self.t, self.K)[0].T, pc[:, 2]
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = self.fx * pc[:, 0] / z + self.cx
+            v = self.fy * pc[:, 1] / z + self.cy
         seen = np.flatnonzero((z > 1e-6) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height))
         return seen, u[seen], v[seen], np.linalg.norm(pc[seen], axis=1)
 

@@ -540,9 +540,8 @@ def tie_free_rates_of(out: dict, pt, n: int, r, y, length: float, loose: float, 
     cover the fits with the rate :data:`RATE_PRIOR_WIDTH` times and a fraction of it, beside the
     tied fit's own Gauss-Newton errors."""
     tied = []
-    for c in range(3):
-        sd, v = out["spread"]["backscatter"][c], out["backscatter"][c]
-        if not sd > loose * max(abs(v), 1e-9):
+    for c, free in enumerate(_loose_rates(out, loose)):
+        if not free:
             tied.append(False)
             continue
         start = (out["attenuation"][c], out["attenuation"][c], out["veil_at_length"][c])
@@ -565,6 +564,12 @@ def tie_free_rates_of(out: dict, pt, n: int, r, y, length: float, loose: float, 
     out["rate_tied"] = tied
 
 
+def _loose_rates(out: dict, loose: float) -> list[bool]:
+    """Per channel, whether the refits leave the backscatter rate looser than ``loose`` (their
+    spread over its value)."""
+    return [sd > loose * max(abs(v), 1e-9) for sd, v in zip(out["spread"]["backscatter"], out["backscatter"])]
+
+
 def tie_rates_under_light(out: dict, pt, n: int, r, y, length: float, loose: float, sub, rounds: int,
                           seed: int) -> None:
     """:func:`tie_free_rates_of` for the fit under light, in place in :func:`fit_water`'s ``out``
@@ -580,10 +585,10 @@ def tie_rates_under_light(out: dict, pt, n: int, r, y, length: float, loose: flo
     rate :data:`RATE_PRIOR_WIDTH` times and a fraction of the attenuation. Where the tied fit
     fails the fit under light's own checks (the light over the noise, the veil below its
     bound) the free fit stays."""
-    sd, v = out["spread"]["backscatter"], out["backscatter"]
     out["rate_tied"] = [False] * 3
-    if not any(s > loose * max(abs(b), 1e-9) for s, b in zip(sd, v)):
+    if not any(_loose_rates(out, loose)):
         return
+
     def fit(start, w=None, tied=TIED_ONLY_ROUNDS, factor=1.0, on=slice(None)):
         return fit_under_light(pt[on], n, r[on], y[on], length, start, w, tied=tied, free=0, factor=factor)
 
@@ -624,7 +629,7 @@ def _bootstrap(refit, pt: torch.Tensor, n: int, rounds: int, seed: int) -> dict:
     for _ in range(rounds):
         pick = used[torch.randint(len(used), (len(used),), generator=gen)]
         count = torch.zeros(n, dtype=torch.float64).index_add_(0, pick, torch.ones(len(pick), dtype=torch.float64))
-        refitted = dict(refit(count[pt]))
+        refitted = refit(count[pt])
         refitted["difference"] = differences(refitted["attenuation"])
         for k in draws:
             draws[k].append(refitted[k])
