@@ -147,7 +147,7 @@ def bound(views, settings, overlap, ids, gts) -> None:
     (what a light of that form can represent), and the floor taken over the frames whose true
     light is lowest instead of their blurred grey level (what the floor's choice of frames
     costs)."""
-    from recgs_addon.core.caustics.consensus import apply_count_gain, gain_by_count
+    from recgs_addon.core.caustics.passes import apply_count_gain, gain_by_count
     from recgs_addon.core.caustics.tv import tv_denoise
     from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
 

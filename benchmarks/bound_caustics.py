@@ -18,14 +18,14 @@ mean, 200 steps against ``I - C`` each). It prints held-out PSNR against the gro
 Every 8th view by sorted name is held out, as in training.
 
 ``--estimator consensus --stat S`` replaces the rounds by one refit to the multi-view
-consensus targets (core/caustics/consensus.py, statistic S of the photos warped with the
-frozen geometry's depth, gain restored per sample count): how far colours from more than
+consensus targets (benchmarks/caustic_estimators/consensus.py, statistic S of the photos
+warped with the frozen geometry's depth, gain restored per sample count): how far colours from more than
 each point's own photos' average can go with the same geometry. ``--estimator gradients``
 does the same with log-gradient consensus (Weiss 2001): the high band integrated from the
 median of the warped photos' log-gradients, the lowest ``--k`` frequencies from their mean.
 ``--estimator lightfield`` runs the rounds with the per-view light fields of
-core/caustics/lightfield.py instead of the low-pass (one-sided coherent light over a floor,
-``--lf-lambda``, ``--lf-tau``; the survey gain in linear light each round): how far the lower
+benchmarks/caustic_estimators/lightfield.py instead of the low-pass (one-sided coherent light
+over a floor, ``--lf-lambda``, ``--lf-tau``; the survey gain in linear light each round): how far the lower
 envelope of the light takes the same geometry.
 """
 from __future__ import annotations
@@ -41,8 +41,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recgs_addon.core.caustics import fft_filter as caustics  # noqa: E402
-from recgs_addon.core.caustics import lightfield  # noqa: E402
-from recgs_addon.core.caustics.consensus import consensus_targets, log_gradient_targets  # noqa: E402
+from benchmarks.caustic_estimators import lightfield  # noqa: E402
+from benchmarks.caustic_estimators.consensus import consensus_targets, log_gradient_targets  # noqa: E402
 from recgs_addon.core.io.colmap import load_scene  # noqa: E402
 from recgs_addon.core.train.losses import psnr  # noqa: E402
 from recgs_addon.core.io.ply import read_gaussian_ply  # noqa: E402

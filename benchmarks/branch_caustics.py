@@ -19,11 +19,13 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from benchmarks.caustic_estimators.methods import register  # noqa: E402
 from recgs_addon.core.caustics.build import make_method  # noqa: E402
 from recgs_addon.core.caustics.config import CausticConfig  # noqa: E402
 from recgs_addon.core.train.config import preset  # noqa: E402
 from recgs_addon.core.train.losses import psnr  # noqa: E402
 
+register()   # the light-field variants
 VARIANTS = {
     "3dgs": dict(mode="3dgs"),
     "lowpass": dict(mode="recgs"),

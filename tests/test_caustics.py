@@ -475,8 +475,9 @@ def test_a_method_checks_each_config_once_before_reading_the_survey(caustic_scen
 
 def test_recgs_job_writes_caustic_outputs_and_report(caustic_scene, tmp_path):
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "recgs_addon", "train", str(caustic_scene), "--out", str(out), "--mode", "recgs",
-           "--iterations", "260", "--warmup", "150", "--recurrence-steps", "50", "--caustic-k", "5",
+    # the train command as the benchmarks run it, with the estimators they compare added
+    cmd = [sys.executable, "-m", "benchmarks.caustic_estimators", "train", str(caustic_scene), "--out", str(out),
+           "--mode", "recgs", "--iterations", "260", "--warmup", "150", "--recurrence-steps", "50", "--caustic-k", "5",
            "--holdout-every", "5", "--eager", "--downscale", "1", "--estimator", "consensus"]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -657,14 +658,15 @@ def _views_of(scene, gaussians, folder="images"):
 def test_warping_with_the_true_depth_reproduces_the_view(caustic_scene):
     """Clean photos of the true scene, warped into view 0 with the true model's depth, agree
     with view 0's own photo where they are valid."""
-    from recgs_addon.core.caustics import consensus as cs
+    from benchmarks.caustic_estimators import consensus as cs
+    from recgs_addon.core.caustics import warp
     from recgs_addon.core.io.ply import read_gaussian_ply
 
     views = _views_of(caustic_scene, read_gaussian_ply(caustic_scene.parent / "gt.ply"), "clean")
     for v in views:
         v["surface"] = v["depth"] / v["alpha"].clamp_min(1e-6)
-    pts = cs.backproject(views[0]["surface"], views[0]["viewmat"], views[0]["K"])
-    grid, z = cs.project(pts, views[0])                      # back into its own view: the pixel centres
+    pts = warp.backproject(views[0]["surface"], views[0]["viewmat"], views[0]["K"])
+    grid, z = warp.project(pts, views[0])                      # back into its own view: the pixel centres
     h, w = views[0]["alpha"].shape
     cover = views[0]["alpha"] >= 0.9
     assert cover.float().mean() > 0.2
@@ -685,7 +687,7 @@ def test_warping_with_the_true_depth_reproduces_the_view(caustic_scene):
 
 
 def test_robust_statistics_match_numpy():
-    from recgs_addon.core.caustics.consensus import robust_stat
+    from benchmarks.caustic_estimators.consensus import robust_stat
 
     g = torch.Generator().manual_seed(3)
     x = torch.rand(5, 4, 6, 3, generator=g)
@@ -707,7 +709,8 @@ def test_lower_envelope_with_gain_recovers_sparse_bright_light():
     """A surface under sparse bright lines (light 0.6 + lines up to 2.8, mean 1 per shot, as
     the voronoi surveys), seen n times: the mean of n shots keeps much of each shot's lines,
     the lower envelope times its per-count gain is near the surface under the mean light."""
-    from recgs_addon.core.caustics.consensus import apply_count_gain, gain_by_count, robust_stat
+    from benchmarks.caustic_estimators.consensus import robust_stat
+    from recgs_addon.core.caustics.passes import apply_count_gain, gain_by_count
 
     g = torch.Generator().manual_seed(4)
     h, w, views = 60, 80, 4
@@ -730,7 +733,7 @@ def test_integrate_gradients_inverts_forward_differences_float64():
     """A smooth-plus-edges field comes back from its forward differences (up to its mean), and
     a gradient field that is not a gradient gives the least-squares field: its residual is
     orthogonal to every gradient (checked against a float64 dense least-squares solve)."""
-    from recgs_addon.core.caustics.fft_filter import integrate_gradients
+    from benchmarks.caustic_estimators.consensus import integrate_gradients
 
     g = torch.Generator().manual_seed(5)
     h, w = 13, 17
@@ -764,9 +767,8 @@ def test_integrate_gradients_inverts_forward_differences_float64():
 def test_log_gradient_median_drops_a_line_one_view_has():
     """Four registered views of one textured surface; one view carries a bright moving line.
     The median of the log-gradients is the surface's, so the integrated field has no line."""
-    from recgs_addon.core.caustics.consensus import median_log_gradients
+    from benchmarks.caustic_estimators.consensus import integrate_gradients, median_log_gradients
     from recgs_addon.core.caustics.estimate import LOG_EPS
-    from recgs_addon.core.caustics.fft_filter import integrate_gradients
 
     g = torch.Generator().manual_seed(6)
     h, w = 24, 32
@@ -806,6 +808,9 @@ def test_lightfield_estimator_takes_out_bright_lines_and_keeps_the_mean_light(tm
         img = torch.from_numpy(read_image(p))
         lit = linear_to_srgb(srgb_to_linear(img) * _line_light(36, 48, i).unsqueeze(-1))
         write_image(root / "images" / p.name, lit.clamp(0, 1).numpy())
+    from benchmarks.caustic_estimators.methods import register
+
+    register()
     kw = dict(iterations=900, warmup=400, recurrence_steps=60, max_recurrences=8)
     lf = make(root, estimator="lightfield", **kw)
     lf.run()

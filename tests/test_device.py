@@ -30,6 +30,9 @@ def device_scene(tmp_path_factory):
     ("filter2d", "adc", "lowpass"),
 ])
 def test_eager_training_makes_no_tensor_off_the_models_device(device_scene, tmp_path, mode, strategy, estimator):
+    from benchmarks.caustic_estimators.methods import register
+
+    register()   # the estimators the benchmarks compare run on the model's device too
     cfg = preset("default", iterations=60, eval_every=20, log_every=20, holdout_every=4, compiled=False,
                  densify_from=10, densify_every=10, densify_until=50, pyramid=((10, 2),), strategy=strategy)
     method = make_method(device_scene, cfg, CausticConfig(mode=mode, warmup=20, recurrence_steps=10, caustics="on",

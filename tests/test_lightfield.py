@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from recgs_addon.core.caustics import lightfield
+from benchmarks.caustic_estimators import lightfield
 from recgs_addon.core.caustics.tv import div, grad, tv_denoise, tv_energy
 from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
 from recgs_addon.core.model.gaussians import SH_C0

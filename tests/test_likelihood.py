@@ -1,4 +1,4 @@
-"""The caustic likelihood (core/caustics/likelihood.py): its table, its fit, and what fitting a
+"""The caustic likelihood (benchmarks/caustic_estimators/likelihood.py): its table, its fit, and what fitting a
 point to it recovers, against the median (L1) and the mean, for light shaped like the survey
 generator's."""
 import math
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from recgs_addon.core.caustics import likelihood
+from benchmarks.caustic_estimators import likelihood
 from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
 
 

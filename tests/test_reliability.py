@@ -169,8 +169,7 @@ def test_second_job_on_a_busy_folder_refuses_and_a_killed_job_frees_it(tmp_path)
     (["--mode", "recgs", "--warmup", "-1"], "warmup must be 0 or more steps, got -1"),
     (["--mode", "recgs", "--max-recurrences", "-1"], "max recurrences must be 0 or more, got -1"),
     (["--mode", "recgs", "--recurrence-tol", "nan"], "recurrence tolerance must be a number >= 0, got nan"),
-    (["--mode", "recgs", "--estimator", "lightfield", "--lf-lambda", "nan"],
-     "light-field TV weight and dead band must be >= 0, got nan, "),
+    (["--mode", "recgs", "--robust-k", "nan"], "robust trimming k must be a number >= 0 (0 = off), got nan"),
     (["--mode", "recgs", "--pass-min", "0"], "the passes a pixel needs must be at least 1, got 0"),
 ])
 def test_train_refuses_settings_no_run_can_use(tmp_path, capsys, argv, msg):

@@ -145,8 +145,7 @@ def run_train(args) -> int:
                            caustic_k=args.caustic_k, caustic_model=args.caustic_model, warmup=args.warmup,
                            recurrence_steps=args.recurrence_steps, max_recurrences=args.max_recurrences,
                            recurrence_tol=args.recurrence_tol, robust_k=args.robust_k,
-                           estimator=args.estimator, caustics=args.caustics, consensus_stat=args.consensus_stat,
-                           lf_lambda=args.lf_lambda, lf_tau=args.lf_tau, fit_loss=args.fit_loss,
+                           estimator=args.estimator, caustics=args.caustics, fit_loss=args.fit_loss,
                            pass_statistic=args.pass_statistic, pass_min=args.pass_min, looks=args.looks,
                            gain_restore=None if args.gain_restore is None else args.gain_restore == "on")
             ccfg = CausticConfig(**{k: v for k, v in caustic.items() if v is not None})

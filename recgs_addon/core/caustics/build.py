@@ -10,7 +10,7 @@ from ..train.config import TrainConfig
 from ..io.frames import read_frame_times
 from ..train.trainer import Trainer, load_data
 from .baselines import Filter2D, Joint
-from .config import CausticConfig
+from .config import ADDED_ESTIMATORS, CausticConfig
 from .light import survey_light
 from .method import Method
 from .recgs import RecGS
@@ -39,5 +39,6 @@ def make_method(scene_dir: str | Path, cfg: TrainConfig, ccfg: CausticConfig, im
     if cfg.lamp != "off" or (ccfg.mode == "recgs" and ccfg.caustics == "auto"):
         light = survey_light(data, times=read_frame_times(data.scene.scene_dir) or {}).summary()
     trainer = Trainer(data, cfg, gaussians, light=light)
-    kind = {"recgs": RecGS, "filter2d": Filter2D, "joint": Joint}.get(ccfg.mode, Method)
+    recgs = ADDED_ESTIMATORS.get(ccfg.estimator, RecGS)   # an estimator a benchmark compares
+    kind = {"recgs": recgs, "filter2d": Filter2D, "joint": Joint}.get(ccfg.mode, Method)
     return kind(trainer, ccfg)

@@ -24,8 +24,12 @@ MODE_INFO = {
 MODES = tuple(MODE_INFO)
 #: Modes that train on caustic-free estimates (and write caustic maps).
 CAUSTIC_MODES = ("recgs", "filter2d", "joint")
-#: How RecGS estimates each view's caustics (recgs.py).
-ESTIMATORS = ("auto", "lowpass", "passes", "consensus", "lightfield", "likelihood")
+#: How RecGS estimates each view's caustics (estimators.py): ``auto`` chooses between the passes
+#: and the paper's low-pass by the survey's views per point.
+ESTIMATORS = ("auto", "lowpass", "passes")
+#: Estimators kept for the record's comparisons (benchmarks/caustic_estimators), by name: the
+#: :class:`.recgs.RecGS` subclass that makes their estimates. Empty unless a benchmark registers them.
+ADDED_ESTIMATORS: dict = {}
 #: The pass estimator's statistics (passes.py): each frame's light modelled, or the floor's mean.
 PASS_STATISTICS = ("field", "floor")
 #: Look frames (a video's frames between the keyframes, looks.json): gathered from where the survey has them, or not.
@@ -56,17 +60,10 @@ class CausticConfig:
     estimator: str = "auto"              # recgs: auto = from the survey's views per point (estimators.choose_estimator)
                                          # | lowpass: C = lowpass(I - render) (paper)
                                          # | passes: the floor of the light over the passes that saw each point (passes.py)
-                                         # | consensus: I - multi-view consensus
-                                         # | lightfield: low band + one-sided coherent light over a floor (lightfield.py)
     pass_statistic: str = "field"        # passes: field = each frame's light modelled, then the colour | floor
     pass_min: int = 1                    # passes: independent passes a pixel needs (fewer: the low-pass target)
     looks: str = "auto"                  # passes: auto = gather the light also from the survey's look frames
                                          # (looks.json: a video's frames between the keyframes) | off
-    lf_lambda: float = 0.05              # lightfield: TV weight (log light per pixel of edge)
-    lf_tau: float = 0.02                 # lightfield: dead band (log light) below which light is not taken out
-    light_sigma: float = 1.0             # likelihood: blur (pixels at 320 px wide, scaled with the image) of a view's light
-    consensus_stat: str = "mean"         # consensus: mean | median | min | quantile (of the views that see a pixel)
-    consensus_q: float = 0.25            # consensus_stat quantile: which quantile
     fit_loss: str = "l1"                 # recgs: data term of the recurrences: l1 (paper; the views' median) | l2 (their mean)
     robust_k: float = 0.0                # recgs: trim pixels brighter than the render by > k robust sigmas; 0 = off (the paper)
     gain_restore: bool = True            # recgs with trimming: rescale colours so renders keep the photos' mean light
@@ -93,12 +90,9 @@ class CausticConfig:
             raise RecGSError(f"unknown caustic model {self.caustic_model!r} (additive or multiplicative)")
         if self.caustics not in FIND_CAUSTICS:
             raise RecGSError(f"unknown caustics setting {self.caustics!r} (choose from {', '.join(FIND_CAUSTICS)})")
-        if self.estimator not in ESTIMATORS:
-            raise RecGSError(f"unknown caustic estimator {self.estimator!r} (choose from {', '.join(ESTIMATORS)})")
-        if self.estimator == "consensus" and self.caustic_model != "additive":
-            raise RecGSError("the consensus estimator makes additive caustic maps (caustic model additive)")
-        if not (0 <= self.lf_lambda < math.inf and 0 <= self.lf_tau < math.inf):   # NaN fails this too
-            raise RecGSError(f"light-field TV weight and dead band must be >= 0, got {self.lf_lambda}, {self.lf_tau}")
+        if self.estimator not in ESTIMATORS and self.estimator not in ADDED_ESTIMATORS:
+            raise RecGSError(f"unknown caustic estimator {self.estimator!r} "
+                             f"(choose from {', '.join(ESTIMATORS + tuple(ADDED_ESTIMATORS))})")
         if self.pass_statistic not in PASS_STATISTICS:
             raise RecGSError(f"unknown pass statistic {self.pass_statistic!r} (choose from {', '.join(PASS_STATISTICS)})")
         if self.looks not in LOOKS:
@@ -121,3 +115,11 @@ class CausticConfig:
             raise RecGSError(f"recurrence tolerance must be a number >= 0, got {self.recurrence_tol}")
         if not math.isfinite(self.robust_k):
             raise RecGSError(f"robust trimming k must be a number >= 0 (0 = off), got {self.robust_k}")
+
+
+def register_estimator(name: str, method) -> None:
+    """Add an estimator kept for comparisons: ``--estimator name`` builds ``method`` (a
+    :class:`.recgs.RecGS` subclass) in place of RecGS (benchmarks/caustic_estimators)."""
+    if name in ESTIMATORS:
+        raise ValueError(f"{name!r} is one of the product's estimators")
+    ADDED_ESTIMATORS[name] = method

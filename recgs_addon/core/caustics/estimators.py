@@ -1,11 +1,16 @@
-"""RecGS's caustic estimates, estimator by estimator: each training view's C (the maps) and
-the caustic-free image a view fits, and what a held-out render is scored against.
+"""RecGS's caustic estimates: each training view's C (the maps) and the caustic-free image a
+view fits, and what a held-out render is scored against.
 
-:class:`Estimates` is a part of :class:`.recgs.RecGS` (its state lives there): the low-pass
-estimate of the paper (``estimate.py``), the targets from the passes that saw each point
-(``passes.py``, ``geometry.py``), the light field (``lightfield.py``), the gain likelihood
-(``likelihood.py``) and the multi-view consensus (``consensus.py``). :func:`choose_estimator`
-is what ``auto`` stands for on a survey.
+:class:`Estimates` is a part of :class:`.recgs.RecGS` (its state lives there). It makes the
+estimates of the two estimators a run uses: the low-pass estimate of the paper
+(``estimate.py``), and the targets from the passes that saw each point (``passes.py``, with the
+survey's geometry from ``geometry.py`` and the look frames of ``core/io/looks.py``).
+:func:`choose_estimator` is what ``auto`` stands for on a survey. An estimator kept for the
+record's comparisons subclasses :class:`.recgs.RecGS` where the benchmarks keep it
+(``config.register_estimator``) and replaces the hooks it needs: ``_estimate`` and
+``_decaustic`` (one view's C and its caustic-free photo), ``_maps_from`` (a round's maps from
+the renders), ``_scored_against`` (a held-out photo's reference once C is in use) and
+``_by_view`` (whether a view's C comes from its own photo and render alone).
 """
 from __future__ import annotations
 
@@ -21,14 +26,11 @@ from ..model.colour import linear_to_srgb, lit_by, srgb_to_linear
 from ..model.lamp import Lamp
 from ..train.data import view_tensors
 from ..train.lamp import centre_range
-from . import fft_filter, geometry, lightfield, likelihood, passes
-from .consensus import consensus_targets
+from . import fft_filter, geometry, passes
 from .estimate import compensate_caustics, estimate_caustics, remove_caustics
 from .light import CAMERA_FLOOR
 from .robust import trim_weights
 
-#: likelihood: training views a refit of the gain distribution renders, at most
-FIT_VIEWS = 24
 #: auto: the survey's median independent passes over a seabed point (sparse points, before
 #: training; frames under a second apart count once, core/train/coverage.py) from which the
 #: targets come from the passes (``passes.py``); below it, the paper's low-pass estimate. With
@@ -81,8 +83,10 @@ class Estimates:
             return image
         if self.references is not None and index in self.references:
             return self.references[index].float()
-        if self._likelihood:   # its own light map follows the render too closely to score it
-            return compensate_caustics(image, render, self._eval_k, "additive", False)
+        return self._scored_against(image, render)
+
+    def _scored_against(self, image: torch.Tensor, render: torch.Tensor) -> torch.Tensor:
+        """A held-out photo with the caustics the estimator sees against ``render`` taken off."""
         return self._decaustic(image, self._estimate(image, render, self._eval_k))
 
     @property
@@ -92,44 +96,18 @@ class Estimates:
         return self.k or fft_filter.DEFAULT_K
 
     @property
-    def _lightfield(self) -> bool:
-        return self.ccfg.estimator == "lightfield"
-
-    @property
-    def _likelihood(self) -> bool:
-        return self.ccfg.estimator == "likelihood"
-
-    @property
     def _passes(self) -> bool:
         return self.ccfg.estimator == "passes"
 
-    def _sigma(self, image: torch.Tensor) -> float:
-        """The light's blur in pixels at this image's width (``light_sigma`` is given at 320 px)."""
-        return self.ccfg.light_sigma * image.shape[1] / 320.0
-
     def _decaustic(self, image: torch.Tensor, cmap: torch.Tensor) -> torch.Tensor:
-        if self._likelihood:
-            return likelihood.remove_light(image, cmap)
-        if self._lightfield:   # the photo under the floor light, brought to the survey's mean light
-            return lightfield.scale_linear(lightfield.remove_light(image, cmap), self.light_gain)
+        """The photo ``image`` with its caustic estimate ``cmap`` taken off."""
         return remove_caustics(image, cmap, self.ccfg.caustic_model)
 
     def _estimate(self, image: torch.Tensor, rgb: torch.Tensor, k: int) -> torch.Tensor:
-        """C of a view from its photo and render, over the pixels trimming keeps (lightfield:
-        its light field, against the render brought down to the floor light)."""
-        if self._lightfield:
-            return self._light_fields([image], [rgb], k)[0]
-        if self._likelihood:
-            return likelihood.light_map(image, rgb, self._sigma(image))
+        """C of a view from its photo and render (the low-pass estimate, filter size ``k``),
+        over the pixels trimming keeps."""
         w = trim_weights(image, rgb, self.targets.k) if self.targets.k else None
         return estimate_caustics(image, rgb, k, self.ccfg.caustic_model, self.ccfg.caustic_dc, w)
-
-    def _light_fields(self, images: list, renders: list, k: int) -> torch.Tensor:
-        """(B, H, W) light fields of views of one size (``lightfield.py``); the model renders
-        the mean light, so its render is brought down by the survey gain first."""
-        q = torch.stack([lightfield.grey_log_ratio(i, lightfield.scale_linear(r, 1.0 / self.light_gain))
-                         for i, r in zip(images, renders)])
-        return lightfield.light_fields(q, k, self.ccfg.lf_lambda, self.ccfg.lf_tau)
 
     def caustic_map(self, index: int) -> torch.Tensor:
         """Additive caustic estimate ``C = I - (caustic-free I)`` of a training view (full res)."""
@@ -138,15 +116,11 @@ class Estimates:
 
     def takes_light_off(self) -> bool:
         """No light estimated (none yet, or C dropped): every caustic-free photo is the photo."""
-        return self.gain_model is not None if self._likelihood else bool(self.maps)
+        return bool(self.maps)
 
     @torch.no_grad()
     def decaustic_image(self, index: int) -> torch.Tensor:
         image = self.data.view(index, 1)[1]
-        if self._likelihood:   # the light of the view against the model as it is now
-            if self.gain_model is None:
-                return image
-            return self._decaustic(image, self._estimate(image, self.trainer.render_view(index), 0))
         cmap = self.maps.get(index)
         if cmap is not None and self.final and self._by_view and not self._model_free(index):
             # against the model kept
@@ -158,16 +132,12 @@ class Estimates:
         are kept as float16, as the targets are (``FixedTargets``)."""
         self.maps = {i: m.to(torch.float16) for i, m in maps.items()}
         self.targets.clear()
-        if self._likelihood:   # the likelihood fits the photos themselves (``_nll``)
-            return
         for i, m in self.maps.items():   # from the kept maps, so a resumed run sets the same targets
             self.targets.put(i, self._decaustic(self.data.view(i, 1)[1], m.float()))
 
     # --- one round's estimates ----------------------------------------------------------
     def _estimates(self, ids: list[int]) -> dict[int, torch.Tensor]:
         """Every training view's new estimate of C (the estimator's maps) against the model now."""
-        if self.ccfg.estimator == "consensus":
-            return self._consensus_maps()
         if self._passes and self.geometry is None:   # the first round, or the first after a resume
             self.geometry = self._make_pass_estimates()
         if self._passes and self.geometry.get("overrun"):   # given up: the round drops C
@@ -176,10 +146,12 @@ class Estimates:
         renders = {i: self.trainer.render_view(i) for i in ids if i not in kept}
         if self.k is None:
             self.k = fft_filter.choose_k([self.data.view(i, 1)[1] - renders[i] for i in ids])
-        if self._lightfield:
-            return self._light_field_maps(renders)
-        if self._likelihood:
-            return self._likelihood_maps(ids, renders)
+        return self._maps_from(ids, kept, renders)
+
+    def _maps_from(self, ids: list[int], kept: dict[int, torch.Tensor],
+                   renders: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
+        """A round's maps of views ``ids``: those ``kept`` as they are (they do not follow the
+        model), every other view's from its render."""
         return {**kept, **{i: self._view_estimate(i, renders[i]) for i in renders}}
 
     def _model_free(self, index: int) -> bool:
@@ -191,8 +163,9 @@ class Estimates:
 
     @property
     def _by_view(self) -> bool:
-        """The estimator makes a view's C from that view's photo and render alone."""
-        return self.ccfg.estimator in ("lowpass", "passes")
+        """The estimator makes a view's C from that view's photo and render alone (one that needs
+        every view at once remakes the maps against the model kept at the end)."""
+        return True
 
     def _view_estimate(self, index: int, render: torch.Tensor) -> torch.Tensor:
         """C of training view ``index`` against ``render`` (``_by_view`` estimators): the
@@ -208,21 +181,6 @@ class Estimates:
             return self._estimate(photo, render, self.k)
         low = compensate_caustics(photo, render, self.k, "additive", self.ccfg.caustic_dc)
         return photo - passes.blend(g["estimates"][index].float(), g["weights"][index].float(), low)
-
-    def _light_field_maps(self, renders: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
-        """Every training view's light field (batched by image size), then the survey gain
-        that brings the targets under the floor light back to the photos' mean light."""
-        ids = self.data.train_ids
-        by_size: dict[tuple, list[int]] = {}
-        for i in ids:
-            by_size.setdefault(tuple(renders[i].shape), []).append(i)
-        new = {}
-        for group in by_size.values():
-            fields = self._light_fields([self.data.view(i, 1)[1] for i in group], [renders[i] for i in group], self.k)
-            new.update(zip(group, fields))
-        photos = [self.data.view(i, 1)[1] for i in ids]
-        self.light_gain = lightfield.linear_gain((p, lightfield.remove_light(p, new[i])) for p, i in zip(photos, ids))
-        return new
 
     def _make_pass_estimates(self) -> dict:
         """The passes' part of the targets (``passes.py``), which does not depend on the model:
@@ -459,45 +417,6 @@ class Estimates:
         floor = LOOK_ALIGNMENT * float(np.median(ref))
         kept = [v for v, k in zip(looks, near) if (geometry.alignment(views[k], v) or -1.0) >= floor]
         return kept, len(looks) - len(kept)
-
-    def _fit_views(self) -> list[int]:
-        """likelihood: the training views a refit renders: all of a small survey, an evenly
-        spread :data:`FIT_VIEWS` of a large one (the gains' distribution needs samples, not
-        every view; the caustic-free photos are made from the final model, view by view)."""
-        ids = self.data.train_ids
-        if len(ids) <= FIT_VIEWS:
-            return list(ids)
-        return [ids[int(k * len(ids) / FIT_VIEWS)] for k in range(FIT_VIEWS)]
-
-    def _likelihood_maps(self, ids: list[int], renders: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
-        """Refit the survey's gain likelihood to the residuals of views ``ids`` (every other
-        pixel of each) and fit it from now on (``_nll``); their light maps."""
-        samples = [likelihood.log_ratio(self.data.view(i, 1)[1], renders[i])[::2, ::2].reshape(-1) for i in ids]
-        self.gain_model = likelihood.GainLikelihood.fit(torch.cat(samples))
-        self._use_likelihood()
-        return {i: likelihood.light_map(self.data.view(i, 1)[1], renders[i], self._sigma(renders[i])) for i in ids}
-
-    def _use_likelihood(self) -> None:
-        """Fit the views to the gain likelihood from the next step on (``LikelihoodObjective``)."""
-        if isinstance(self.trainer.objective, likelihood.LikelihoodObjective):
-            self.trainer.objective.gain = self.gain_model
-        else:
-            self.trainer.set_objective(likelihood.LikelihoodObjective(self.gain_model, self._sigma,
-                                                                      reference=self._reference))
-
-    def _consensus_maps(self) -> dict[int, torch.Tensor]:
-        """C = I - (gain-restored multi-view consensus of the photos), with the model's depth
-        (``consensus.py``)."""
-        tr, ids = self.trainer, self.data.train_ids
-        views = []
-        for i in ids:
-            cam, photo = self.data.view(i, 1)
-            out = tr.render_output(i)
-            viewmat, K = view_tensors(cam, tr.device)
-            views.append(dict(photo=photo, depth=out.depth, alpha=out.alpha, viewmat=viewmat, K=K))
-        targets, _, _ = consensus_targets(views, self.ccfg.consensus_stat, self.ccfg.consensus_q)
-        return {i: v["photo"] - t for i, v, t in zip(ids, views, targets)}
-
 
 def _resize(x: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """(..., h, w) bilinearly to (..., height, width) (as it is where the size matches)."""

@@ -62,37 +62,6 @@ def lowpass(image: torch.Tensor, k: int = DEFAULT_K) -> torch.Tensor:
     return out.permute(1, 2, 0).to(image.dtype).contiguous()
 
 
-def integrate_gradients(gx: torch.Tensor, gy: torch.Tensor) -> torch.Tensor:
-    """The field ``u`` (H, W, C) whose forward differences best match ``gx``, ``gy`` (H, W, C)
-    in least squares, with zero mean per channel: the Neumann Poisson problem
-    ``laplace(u) = div(g)``, solved exactly with the FFT of the mirrored divergence (a DCT).
-
-    ``gx[:, j] = u[:, j + 1] - u[:, j]`` and ``gy[i] = u[i + 1] - u[i]``; their last column
-    (``gx``) and row (``gy``) are ignored. Float64 inside, returns the input dtype."""
-    if gx.dim() != 3 or gx.shape != gy.shape:
-        raise ValueError(f"expected two (H, W, C) gradient fields, got {tuple(gx.shape)} and {tuple(gy.shape)}")
-    h, w, _ = gx.shape
-    dtype = gx.dtype
-    gx = gx.to(torch.float64).clone()
-    gy = gy.to(torch.float64).clone()
-    gx[:, -1] = 0
-    gy[-1] = 0
-    div = gx + gy
-    div[:, 1:] -= gx[:, :-1]
-    div[1:] -= gy[:-1]
-    d = div.permute(2, 0, 1)
-    ext = torch.cat([d, d.flip(-1)], -1)
-    ext = torch.cat([ext, ext.flip(-2)], -2)
-    ky = torch.arange(2 * h, dtype=torch.float64, device=gx.device)
-    kx = torch.arange(2 * w, dtype=torch.float64, device=gx.device)
-    lam = (2 * torch.cos(math.pi * ky / h) - 2)[:, None] + (2 * torch.cos(math.pi * kx / w) - 2)[None, :]
-    lam[0, 0] = 1.0
-    spec = torch.fft.fft2(ext) / lam
-    spec[..., 0, 0] = 0
-    u = torch.fft.ifft2(spec).real[..., :h, :w]
-    return u.permute(1, 2, 0).to(dtype).contiguous()
-
-
 def filter2d(image: torch.Tensor, k: int = DEFAULT_K) -> torch.Tensor:
     """The ``filter2d`` baseline: ``I - lowpass(I - mean(I))`` per channel, no 3D model."""
     mean = image.mean(dim=(0, 1), keepdim=True)

@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from ..train.coverage import DEPTH_TOL
-from .consensus import _sample, backproject, inside, project, within
+from .warp import backproject, inside, project, sample, within
 
 #: Overlap grid: pixels of a frame sampled along each side to measure what another frame sees of it.
 OVERLAP_GRID = 24
@@ -158,17 +158,17 @@ def warp(vi: PassView, vj: PassView, depth_tol: float = DEPTH_TOL,
          points: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Frame ``vj``'s photo sampled (bilinear) at the projections of frame ``vi``'s pixels, and
     where that is the same surface: (sRGB (H, W, 3), valid (H, W) bool: half a pixel or more
-    inside ``vj`` (:func:`.consensus.inside`), in front of it, ``vj``'s own depth there within
+    inside ``vj`` (:func:`.warp.inside`), in front of it, ``vj``'s own depth there within
     ``depth_tol`` (relative), ``vi``'s depth known). ``image``: an (H', W', C) image of ``vj``'s
     size to sample instead of its photo; ``points``: ``vi``'s pixels' world points
-    (:func:`.consensus.backproject` of its :func:`depth_map`), if already made (a frame warped
+    (:func:`.warp.backproject` of its :func:`depth_map`), if already made (a frame warped
     from many others makes them once)."""
     pts = backproject(depth_map(vi), vi.viewmat, vi.K) if points is None else points
     grid, z = project(pts, {"viewmat": vj.viewmat, "K": vj.K, "depth": vj.surface})
-    near = _sample(depth_map(vj), grid, "nearest")
+    near = sample(depth_map(vj), grid, "nearest")
     ok = (inside(grid, *vj.surface.shape) & (z > 1e-6)
           & ((near - z).abs() <= depth_tol * z) & vi.covered)
-    return _sample(vj.photo if image is None else image, grid, "bilinear"), ok
+    return sample(vj.photo if image is None else image, grid, "bilinear"), ok
 
 
 def blur(x: torch.Tensor, w: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -441,7 +441,6 @@ def ambiguity(s: torch.Tensor, own: torch.Tensor, radius: int) -> torch.Tensor:
 def grazing(v: PassView, depth: torch.Tensor) -> torch.Tensor:
     """(H, W) bool: pixels whose surface (the normal of ``depth`` backprojected) is seen more
     than :data:`GRAZING_DEG` from the view ray."""
-    from .consensus import backproject
     pts = backproject(depth, v.viewmat, v.K)
     dy, dx = torch.gradient(pts, dim=(0, 1))
     n = torch.linalg.cross(dx, dy, dim=-1)

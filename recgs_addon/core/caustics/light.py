@@ -53,7 +53,7 @@ import torch
 from ..model.colour import srgb_to_linear
 from ..model.lamp import POWERS
 from ..train.data import as_float
-from .consensus import _sample, backproject, inside, project
+from .warp import backproject, inside, project, sample
 from .geometry import PassView, depth_map, points_depth, smooth
 
 #: Long side (pixels) the frames are compared at: caustic cells span tens of pixels there.
@@ -236,12 +236,12 @@ def _pair_samples(vi: PassView, vj: PassView) -> Optional[PairSamples]:
     """The pair's pixels (:class:`PairSamples`), or None where they share too few."""
     pts = backproject(depth_map(vi), vi.viewmat, vi.K)
     grid, z = project(pts, {"viewmat": vj.viewmat, "K": vj.K, "depth": vj.surface})
-    near = _sample(depth_map(vj), grid, "nearest")
+    near = sample(depth_map(vj), grid, "nearest")
     g = grid[0]
     ok = (inside(grid, *vj.surface.shape) & (z > 1e-6) & ((near - z).abs() <= 0.03 * z) & vi.covered)
     h, w = vi.surface.shape
     s = LIGHT_SIGMA * w / LIGHT_SIDE
-    other = _sample(vj.photo, grid, "bilinear")
+    other = sample(vj.photo, grid, "bilinear")
     own_rgb, other_rgb = srgb_to_linear(vi.photo.clamp(0, 1)), srgb_to_linear(other.clamp(0, 1))
     own_lin = own_rgb.mean(-1)
     a = smooth(own_lin.unsqueeze(0), ok.unsqueeze(0), s)[0]

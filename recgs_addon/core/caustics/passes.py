@@ -28,8 +28,7 @@ each training frame ``i``:
    floor is darker than the mean light the ground truth shows, by a factor that depends on how
    many frames it was taken over: the survey's own photos calibrate it (they hold the mean
    light), per number of frames ``n`` and channel, as the ratio of the photos' sum to the
-   floor's over all pixels seen by ``n`` frames (``consensus.gain_by_count``, as the consensus
-   estimator's lower envelopes are). What varies
+   floor's over all pixels seen by ``n`` frames (:func:`gain_by_count`). What varies
    between passes at a point is light, whatever its frequency, so this replaces the whole band.
 5. **The light, then the colour** (``statistic="field"``, the default). The floor is a first
    colour; each frame's *light* is then modelled against it, in the frame's own image: the
@@ -67,9 +66,9 @@ import torch
 
 from ..model.colour import linear_to_srgb, srgb_to_linear
 from ..train.coverage import DEPTH_TOL, LIGHT_SECONDS, PASS_SECONDS, looks_of
-from .consensus import apply_count_gain, backproject, gain_by_count
 from .geometry import PassView, depth_map, overlap_matrix, smooth, warp
 from .tv import tv_denoise
+from .warp import backproject
 
 #: A frame that sees less than this share of another's covered pixels is not its neighbour.
 MIN_OVERLAP = 0.05
@@ -465,3 +464,39 @@ def decorrelation_time(shared: dict, dt: float) -> float:
     lags = np.array([p[0] for p in pts])
     decay = -np.log(np.array([p[1] for p in pts]))
     return round(float((lags * lags).sum() / (lags * decay).sum()), 3)
+
+
+def gain_by_count(photos: list[torch.Tensor], stats: list[torch.Tensor], counts: list[torch.Tensor],
+                  min_pixels: int = 500) -> dict[int, torch.Tensor]:
+    """Per sample count n, the (3,) ratio sum(photo) / sum(statistic) over the pixels with n
+    samples in all views. Pixels without a sample (n = 0: the statistic says nothing there)
+    take no part. A count with fewer than ``min_pixels`` pixels takes the ratio of the nearest
+    count that has enough (the pixels of all counts, if none has)."""
+    sums: dict[int, list] = {}
+    for p, s, c in zip(photos, stats, counts):
+        for n in torch.unique(c).tolist():
+            if n < 1:
+                continue
+            m = c == n
+            acc = sums.setdefault(int(n), [torch.zeros(3, dtype=torch.float64, device="cpu"),
+                                           torch.zeros(3, dtype=torch.float64, device="cpu"), 0])
+            acc[0] += p[m].double().sum(0).cpu()
+            acc[1] += s[m].double().sum(0).cpu()
+            acc[2] += int(m.sum())
+    if not sums:
+        return {}
+    ok = {n: (a[0] / a[1].clamp_min(1e-12)).float() for n, a in sums.items() if a[2] >= min_pixels}
+    if not ok:
+        tot = [sum(a[0] for a in sums.values()), sum(a[1] for a in sums.values())]
+        g = (tot[0] / tot[1].clamp_min(1e-12)).float()
+        return {n: g for n in sums}
+    return {n: ok[n] if n in ok else ok[min(ok, key=lambda k: abs(k - n))] for n in sums}
+
+
+def apply_count_gain(stat: torch.Tensor, count: torch.Tensor, gains: dict[int, torch.Tensor]) -> torch.Tensor:
+    """The statistic (H, W, 3) times the gain of each pixel's sample count."""
+    out = stat.clone()
+    for n, g in gains.items():
+        m = count == n
+        out[m] = stat[m] * g
+    return out

@@ -13,8 +13,8 @@ with caustic-free targets:
   estimator's maps and targets: ``estimators.py``): by default
   the low-pass of the residual ``R = I - render`` (``fft_filter.py``, ``estimate.py``; less
   its mean per view and channel unless ``ccfg.caustic_dc``: caustics move light without adding
-  any), or ``I`` less the multi-view consensus of the photos (``ccfg.estimator = "consensus"``,
-  ``consensus.py``). Train ``ccfg.recurrence_steps`` steps against ``I - C``, and repeat
+  any), or the targets from the passes that saw each point (``ccfg.estimator = "passes"``,
+  ``passes.py``). Train ``ccfg.recurrence_steps`` steps against ``I - C``, and repeat
   until ``C`` stops changing (``mean |C_new - C_old| / mean |C_new| < ccfg.recurrence_tol``),
   or at ``ccfg.max_recurrences`` or the time/iteration limit. ``ccfg.caustic_model =
   "multiplicative"`` estimates a log-gain ``L = lowpass(log(I + e) - log(render + e))`` and
@@ -58,7 +58,7 @@ from ..io.looks import read_looks
 from ..train.evaluation import PLATEAU
 from ..train.losses import psnr
 from ..train.trainer import Progress, Trainer
-from . import fft_filter, likelihood
+from . import fft_filter
 from .config import CausticConfig
 from . import estimators
 from .estimate import estimate_caustics, remove_caustics
@@ -92,11 +92,11 @@ def prefers_recgs(recgs: dict, plain: dict) -> tuple[bool, str]:
     kept. Against a fair competitor: where the passes estimator made references for the held-out
     frames (caustic-free, gathered from the training frames alone), by PSNR against them, unless
     its relit score against the held-out photos (:func:`relit_psnr`, no estimate involved) falls
-    more than :data:`RELIT_HARM_DB` below the plain model's; where a gain likelihood was fitted,
-    by its data term, with PSNR against the captured photos not falling more than
-    :data:`HARM_DB`; otherwise by that PSNR, where a difference within :data:`TIE_DB` is a tie
-    that goes to the caustic-free model. benchmarks/bench_caustics.py reports how often this
-    agrees with ground truth."""
+    more than :data:`RELIT_HARM_DB` below the plain model's; where the estimator scores the
+    views by a likelihood of its own (``nll``: the benchmarks' gain likelihood), by that, with
+    PSNR against the captured photos not falling more than :data:`HARM_DB`; otherwise by that
+    PSNR, where a difference within :data:`TIE_DB` is a tie that goes to the caustic-free model.
+    benchmarks/bench_caustics.py reports how often this agrees with ground truth."""
     if "psnr_captured" not in recgs or "psnr_captured" not in plain:
         return True, "no held-out views to judge by"
     dp = recgs["psnr_captured"] - plain["psnr_captured"]
@@ -219,8 +219,6 @@ class RecGS(Estimates, Method):
         self.targets = TrimmedTargets(ccfg.robust_k, reference=self._reference)
         trainer.set_objective(self.targets)
         self.gain: Optional[list] = None    # the colour gain applied at the end (gain_restore)
-        #: lightfield: the survey's linear gain from the floor light to the mean light (3,)
-        self.light_gain = torch.ones(3, device="cpu")
         self.maps: dict[int, torch.Tensor] = {}  # C or log-gain per training view (full res)
         self.recurrence = 0
         self.rec_history: list[dict] = []
@@ -240,8 +238,6 @@ class RecGS(Estimates, Method):
         self.plain: Optional[dict] = None
         self.misses = 0
         self.drop_reason: Optional[str] = None  # why C was dropped (see _drop), if it was
-        #: likelihood: the survey's caustic gain distribution, refitted every recurrence
-        self.gain_model: Optional[likelihood.GainLikelihood] = None
         #: at the end: how the RecGS model, the plain model and the kept best score (``_scores``)
         self.candidates: Optional[dict] = None
         #: the step at which C first settled (``recurrence_tol``), if it did
@@ -276,8 +272,7 @@ class RecGS(Estimates, Method):
     def recur(self) -> dict:
         """One re-estimation of C for every training view; updates the targets."""
         tr = self.trainer
-        ids = self._fit_views() if self._likelihood else self.data.train_ids
-        previous_gain = self.gain_model
+        ids = self._round_views()
         new = self._estimates(ids)
         if not new and self._passes and (self.geometry or {}).get("overrun"):   # given up: no C this round
             self.recurrence += 1
@@ -285,11 +280,7 @@ class RecGS(Estimates, Method):
                      "c_change": 0.0, "mean_abs_c": 0.0, "k": self.k, "overrun": self.geometry["overrun"]}
             self.rec_history.append(entry)
             return entry
-        if self._likelihood:   # the light maps follow the model's texture too; the gains' distribution settles
-            change = self.gain_model.distance(previous_gain) if previous_gain is not None else 1.0
-        else:
-            old = [self.maps[i].float() if i in self.maps else torch.zeros_like(new[i]) for i in ids]
-            change = fft_filter.caustic_change([new[i] for i in ids], old)
+        change = self._change(ids, new)
         self._set_maps(new)
         self.recurrence += 1
         photos = {i: self.data.view(i, 1)[1] for i in ids}
@@ -300,6 +291,15 @@ class RecGS(Estimates, Method):
             entry["light_std"] = self.geometry["light"]["light_std"]
         self.rec_history.append(entry)
         return entry
+
+    def _round_views(self) -> list[int]:
+        """The training views a round estimates C of (all of them)."""
+        return self.data.train_ids
+
+    def _change(self, ids: list[int], new: dict[int, torch.Tensor]) -> float:
+        """How much a round's maps ``new`` moved from the last (relative mean absolute change)."""
+        old = [self.maps[i].float() if i in self.maps else torch.zeros_like(new[i]) for i in ids]
+        return fft_filter.caustic_change([new[i] for i in ids], old)
 
     def _due(self) -> bool:
         """Work is due before the next step: the warm-up is over, or a recurrence is due."""
@@ -450,8 +450,7 @@ class RecGS(Estimates, Method):
         on from the current model and its Adam state, so no steps are thrown away."""
         if restore:
             self.trainer.restore(self.plain)
-        self.light_gain = torch.ones(3, device="cpu")
-        self.gain_model = None
+        self._forget_light()
         if self.trainer.objective is not self.targets:
             self.trainer.set_objective(self.targets)
         self._set_maps({})  # targets = the captured images
@@ -462,6 +461,10 @@ class RecGS(Estimates, Method):
         self._plain_loss()
         self.stage, self.next_due = "settle", None
         self.trainer.restart_plateau(forget_best=True)
+
+    def _forget_light(self) -> None:
+        """What an estimator learnt of the survey's light besides the maps, forgotten where C is
+        dropped (none here)."""
 
     def _plain_loss(self) -> None:
         """Without C, no trimming and no L2 either: the run ends as plain 3DGS."""
@@ -532,15 +535,14 @@ class RecGS(Estimates, Method):
         # the exported caustic-free photos and maps come from the model kept: view by view as
         # they are written (one render each), or all at once for the estimators that need that
         self.final = True
-        if self.maps and not self._likelihood and not self._by_view:
+        if self.maps and not self._by_view:
             self._set_maps(self._estimates(self.data.train_ids))
 
     @torch.no_grad()
     def _scores(self, snap: dict, steps: int) -> dict:
         """How a model (a ``snapshot()``, trained ``steps`` steps) does on the held-out views:
         its steps and Gaussians, PSNR against the photos as captured, against the references the
-        passes made (where they did), the mean data term of the gain likelihood against the
-        photos (lower is more likely; where one was fitted) and PSNR against ground truth (where
+        passes made (where they did), the estimator's own scores (``_view_scores``) and PSNR against ground truth (where
         the survey has it, reported only)."""
         tr = self.trainer
         ids = tr.heldout_ids()
@@ -548,7 +550,7 @@ class RecGS(Estimates, Method):
         if not ids:
             return out
         with tr.using(snap):
-            cap, ref, nll, gt, relit = [], [], [], [], {k: [] for k in RELIT_K}
+            cap, ref, gt, relit, own = [], [], [], {k: [] for k in RELIT_K}, {}
             for i in ids:
                 rgb, true = tr.render_pair(i)
                 photo = self.data.view(i, 1)[1]
@@ -558,9 +560,8 @@ class RecGS(Estimates, Method):
                     relit[k].append(relit_psnr(rgb, photo, k, keep))
                 if self.references is not None and i in self.references:
                     ref.append(psnr(rgb, self.references[i].float(), keep))
-                if self.gain_model is not None:
-                    w = rgb.clamp(0.02, 1.0)
-                    nll.append(float((w * self.gain_model(likelihood.log_ratio(photo, rgb))).mean() / w.mean()))
+                for key, v in self._view_scores(rgb, photo).items():
+                    own.setdefault(key, []).append(v)
                 g = self.data.gt_view(i)
                 if g is not None:
                     gt.append(psnr(true, g, keep))
@@ -569,11 +570,15 @@ class RecGS(Estimates, Method):
             out[f"psnr_relit{k}"] = round(sum(v) / len(v), 4)
         if ref:
             out["psnr_reference"] = round(sum(ref) / len(ref), 4)
-        if nll:
-            out["nll"] = round(sum(nll) / len(nll), 5)
+        for key, v in own.items():
+            out[key] = round(sum(v) / len(v), 5)
         if gt:
             out["psnr_gt"] = round(sum(gt) / len(gt), 4)
         return out
+
+    def _view_scores(self, render: torch.Tensor, photo: torch.Tensor) -> dict[str, float]:
+        """An estimator's own scores of a held-out render against its photo (none here)."""
+        return {}
 
     @torch.no_grad()
     def restore_gain(self) -> list:
@@ -658,17 +663,13 @@ class RecGS(Estimates, Method):
         return why
 
     def state_bytes(self) -> int:
-        """The maps and the targets, float16 (H, W, 3) each, of every training view (likelihood:
-        a light map, float16 (H, W), of each view a refit renders)."""
-        if self._likelihood:
-            return 2 * self.data.training_pixels(self._fit_views())
+        """The maps and the targets, float16 (H, W, 3) each, of every training view."""
         return (6 + self.targets.bytes_per_pixel()) * self.data.training_pixels()
 
     def summary(self) -> dict:
         return {**super().summary(), "estimator": self.ccfg.estimator, "estimator_why": self.estimator_why,
                 "candidates": self.candidates, "caustic_k": self.k, "recurrences": self.rec_history, "caustics_dropped": self.drop_reason,
                 "psnr_heldout_plain": (self.plain or {}).get("score"), "colour_gain": self.gain,
-                "light_gain": [round(float(x), 4) for x in self.light_gain] if self._lightfield else None,
                 "passes": self.pass_info, "light": self.light}
 
     # --- checkpoints -----------------------------------------------------------------------
@@ -679,8 +680,7 @@ class RecGS(Estimates, Method):
             "rec_history": self.rec_history, "next_due": self.next_due, "stage": self.stage,
             "plain": None if self.plain is None else {
                 **self.plain, "params": {n: v.cpu() for n, v in self.plain["params"].items()}},
-            "misses": self.misses, "drop_reason": self.drop_reason, "light_gain": self.light_gain.clone(),
-            "gain_model": None if self.gain_model is None else self.gain_model.state_dict(),
+            "misses": self.misses, "drop_reason": self.drop_reason,
             "converged_at": self.converged_at, "warmup_start": self.warmup_start,
         }
         return s
@@ -693,16 +693,10 @@ class RecGS(Estimates, Method):
         self.plain = cs.get("plain")
         # checkpoints written before the do-no-harm tests have none of these
         self.misses, self.drop_reason = cs.get("misses", 0), cs.get("drop_reason")
-        if "light_gain" in cs:
-            self.light_gain = cs["light_gain"].clone()
         self.converged_at = cs.get("converged_at")
         self.warmup_start = cs.get("warmup_start")
-        if cs.get("gain_model") is not None:
-            self.gain_model = likelihood.GainLikelihood.from_state(cs["gain_model"])
         if self.stage != "warmup":
             self.targets.loss_kind = self.ccfg.fit_loss
-            if self.gain_model is not None and not self.dropped:
-                self._use_likelihood()
         if self.dropped:
             self._plain_loss()
         self._set_maps({int(i): m.to(self.trainer.device) for i, m in cs["maps"].items()})

@@ -168,10 +168,7 @@ TRAIN_OPTIONS = OptionTable([
                           "of 2 or more independent passes and lowpass below; passes: each frame's target from the "
                           "other frames that saw each point (the floor of their light, over the whole band; the "
                           "survey's sparse points give the geometry); lowpass: C from the low-passed residual (the "
-                          "paper); likelihood: fit each point to the light its views most likely saw (the survey's "
-                          "distribution of caustic gains); consensus: the multi-view consensus of the photos warped "
-                          "with the model's depth; lightfield: a per-view light field (low band + coherent light "
-                          "over a floor; docs/dev/caustics.md)", choices=ESTIMATORS, group=_CAUSTICS),
+                          "paper)", choices=ESTIMATORS, group=_CAUSTICS),
     Option("--pass-statistic", "passes: field (default): each frame's light modelled as one continuous field "
                                "against the colour the other passes show, then the colour; floor: the mean of the "
                                "frames that saw each pixel under the floor of its light", choices=PASS_STATISTICS,
@@ -181,12 +178,6 @@ TRAIN_OPTIONS = OptionTable([
     Option("--looks", "passes: auto (default) gathers the light also from the survey's look frames (looks.json "
                       "and looks/: a video's frames between the keyframes, each a further look at the light; they "
                       "do not train); off: the keyframes alone", choices=LOOKS, group=_CAUSTICS),
-    Option("--lf-lambda", f"lightfield: TV weight (default {CausticConfig.lf_lambda})", type=float, group=_CAUSTICS),
-    Option("--lf-tau", f"lightfield: dead band in log light (default {CausticConfig.lf_tau})", type=float,
-           group=_CAUSTICS),
-    Option("--consensus-stat", "consensus: the per-pixel statistic over the views that see it (default "
-                               f"{CausticConfig.consensus_stat})", choices=("mean", "median", "min", "quantile"),
-           group=_CAUSTICS),
     Option("--fit-loss", "recgs: data term of the recurrences: l1 (the paper; fits the views' median) or l2 (their "
                          f"mean; no SSIM term); default {CausticConfig.fit_loss}", choices=("l1", "l2"),
            group=_CAUSTICS),

@@ -31,11 +31,11 @@ from typing import Iterable
 
 import torch
 
-from ..model.colour import linear_to_srgb, srgb_to_linear
-from ..model.gaussians import SH_C0
-from . import fft_filter
-from .robust import colour_gain
-from .tv import tv_denoise
+from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
+from recgs_addon.core.model.gaussians import SH_C0
+from recgs_addon.core.caustics import fft_filter
+from recgs_addon.core.caustics.robust import colour_gain
+from recgs_addon.core.caustics.tv import tv_denoise
 
 #: Offset (in [0, 1] intensity) inside the logarithms (as estimate.LOG_EPS).
 LOG_EPS = 0.02

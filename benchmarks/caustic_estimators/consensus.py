@@ -26,62 +26,17 @@ Shapes: photos and targets (H, W, 3) float32; depth, counts (H, W). Cameras: ``v
 """
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import torch
-import torch.nn.functional as F
 
-from .estimate import LOG_EPS
-from .fft_filter import integrate_gradients, lowpass
+from recgs_addon.core.caustics.estimate import LOG_EPS
+from recgs_addon.core.caustics.fft_filter import lowpass
+from recgs_addon.core.caustics.passes import apply_count_gain, gain_by_count
+from recgs_addon.core.caustics.warp import backproject, inside, project, sample
 
 STATS = ("mean", "median", "min", "quantile")
-
-
-def backproject(depth: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """(H, W, 3) world points of the pixel centres at camera-space depth ``depth`` (H, W)."""
-    h, w = depth.shape
-    v, u = torch.meshgrid(torch.arange(h, dtype=depth.dtype, device=depth.device) + 0.5,
-                          torch.arange(w, dtype=depth.dtype, device=depth.device) + 0.5,
-                          indexing="ij")
-    x = (u - K[0, 2]) / K[0, 0] * depth
-    y = (v - K[1, 2]) / K[1, 1] * depth
-    cam = torch.stack([x, y, depth], -1)
-    R, t = viewmat[:3, :3], viewmat[:3, 3]
-    return (cam - t) @ R   # R^T (cam - t), row vectors
-
-
-def project(points, view):
-    """(grid (1, H, W, 2) of ``grid_sample`` coordinates, z (H, W)) of ``points`` (H, W, 3) in
-    ``view`` (``viewmat``, ``K``, and ``depth`` for its size)."""
-    R, t, K = view["viewmat"][:3, :3], view["viewmat"][:3, 3], view["K"]
-    cam = points @ R.T + t
-    z = cam[..., 2]
-    zs = z.clamp_min(1e-6)
-    hh, ww = view["depth"].shape
-    u = K[0, 0] * cam[..., 0] / zs + K[0, 2]
-    v = K[1, 1] * cam[..., 1] / zs + K[1, 2]
-    return torch.stack([2 * u / ww - 1, 2 * v / hh - 1], -1).unsqueeze(0), z
-
-
-def inside(grid: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """(H, W) bool: the ``grid_sample`` coordinates ``grid`` (1, H, W, 2) lie half a pixel or more
-    inside an image of ``height x width`` (:func:`within`)."""
-    return within(grid[0], height, width)
-
-
-def within(g: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """(...) bool: the ``grid_sample`` coordinates ``g`` (..., 2) lie half a pixel or more inside
-    an image of ``height x width``, where a bilinear sample mixes its pixels only (nearer the
-    edge it mixes in the padding around them: a dark seam along the other frame's edge)."""
-    return (g[..., 0].abs() <= 1 - 1 / width) & (g[..., 1].abs() <= 1 - 1 / height)
-
-
-def _sample(image, grid, mode):
-    """``image`` (H', W', C) or (H', W') at ``grid``: (H, W, C) or (H, W)."""
-    x = image.unsqueeze(-1) if image.dim() == 2 else image
-    out = F.grid_sample(x.permute(2, 0, 1).unsqueeze(0), grid.to(x.dtype), mode=mode, align_corners=False)
-    out = out[0].permute(1, 2, 0)
-    return out[..., 0] if image.dim() == 2 else out
 
 
 def warp(points, view, depth_tol, min_alpha):
@@ -91,9 +46,9 @@ def warp(points, view, depth_tol, min_alpha):
     its rendered surface depth agrees with the point's within ``depth_tol`` (relative): the
     other view sees that surface, not something in front of it."""
     grid, z = project(points, view)
-    samp = _sample(view["photo"], grid, "bilinear")
-    near = _sample(view["surface"], grid, "nearest")
-    alpha = _sample(view["alpha"], grid, "nearest")
+    samp = sample(view["photo"], grid, "bilinear")
+    near = sample(view["surface"], grid, "nearest")
+    alpha = sample(view["alpha"], grid, "nearest")
     within = inside(grid, *view["photo"].shape[:2]) & (z > 1e-6)
     return samp, within & ((near - z).abs() <= depth_tol * z) & (alpha >= min_alpha)
 
@@ -188,42 +143,6 @@ def log_gradient_targets(views, k: int = 25, depth_tol: float = 0.03, min_alpha:
     return out
 
 
-def gain_by_count(photos: list[torch.Tensor], stats: list[torch.Tensor], counts: list[torch.Tensor],
-                  min_pixels: int = 500) -> dict[int, torch.Tensor]:
-    """Per sample count n, the (3,) ratio sum(photo) / sum(statistic) over the pixels with n
-    samples in all views. Pixels without a sample (n = 0: the statistic says nothing there)
-    take no part. A count with fewer than ``min_pixels`` pixels takes the ratio of the nearest
-    count that has enough (the pixels of all counts, if none has)."""
-    sums: dict[int, list] = {}
-    for p, s, c in zip(photos, stats, counts):
-        for n in torch.unique(c).tolist():
-            if n < 1:
-                continue
-            m = c == n
-            acc = sums.setdefault(int(n), [torch.zeros(3, dtype=torch.float64, device="cpu"),
-                                           torch.zeros(3, dtype=torch.float64, device="cpu"), 0])
-            acc[0] += p[m].double().sum(0).cpu()
-            acc[1] += s[m].double().sum(0).cpu()
-            acc[2] += int(m.sum())
-    if not sums:
-        return {}
-    ok = {n: (a[0] / a[1].clamp_min(1e-12)).float() for n, a in sums.items() if a[2] >= min_pixels}
-    if not ok:
-        tot = [sum(a[0] for a in sums.values()), sum(a[1] for a in sums.values())]
-        g = (tot[0] / tot[1].clamp_min(1e-12)).float()
-        return {n: g for n in sums}
-    return {n: ok[n] if n in ok else ok[min(ok, key=lambda k: abs(k - n))] for n in sums}
-
-
-def apply_count_gain(stat: torch.Tensor, count: torch.Tensor, gains: dict[int, torch.Tensor]) -> torch.Tensor:
-    """The statistic (H, W, 3) times the gain of each pixel's sample count."""
-    out = stat.clone()
-    for n, g in gains.items():
-        m = count == n
-        out[m] = stat[m] * g
-    return out
-
-
 def consensus_targets(views: list[dict], stat: str = "median", q: float = 0.25, depth_tol: float = 0.03,
                       gain: bool = True) -> tuple[list[torch.Tensor], list[torch.Tensor], Optional[dict]]:
     """Gain-restored consensus targets (see the module's docstring): (targets, counts, gains)."""
@@ -232,3 +151,34 @@ def consensus_targets(views: list[dict], stat: str = "median", q: float = 0.25, 
         return stats, counts, None
     gains = gain_by_count([v["photo"] for v in views], stats, counts)
     return [apply_count_gain(s, c, gains) for s, c in zip(stats, counts)], counts, gains
+
+
+def integrate_gradients(gx: torch.Tensor, gy: torch.Tensor) -> torch.Tensor:
+    """The field ``u`` (H, W, C) whose forward differences best match ``gx``, ``gy`` (H, W, C)
+    in least squares, with zero mean per channel: the Neumann Poisson problem
+    ``laplace(u) = div(g)``, solved exactly with the FFT of the mirrored divergence (a DCT).
+
+    ``gx[:, j] = u[:, j + 1] - u[:, j]`` and ``gy[i] = u[i + 1] - u[i]``; their last column
+    (``gx``) and row (``gy``) are ignored. Float64 inside, returns the input dtype."""
+    if gx.dim() != 3 or gx.shape != gy.shape:
+        raise ValueError(f"expected two (H, W, C) gradient fields, got {tuple(gx.shape)} and {tuple(gy.shape)}")
+    h, w, _ = gx.shape
+    dtype = gx.dtype
+    gx = gx.to(torch.float64).clone()
+    gy = gy.to(torch.float64).clone()
+    gx[:, -1] = 0
+    gy[-1] = 0
+    div = gx + gy
+    div[:, 1:] -= gx[:, :-1]
+    div[1:] -= gy[:-1]
+    d = div.permute(2, 0, 1)
+    ext = torch.cat([d, d.flip(-1)], -1)
+    ext = torch.cat([ext, ext.flip(-2)], -2)
+    ky = torch.arange(2 * h, dtype=torch.float64, device=gx.device)
+    kx = torch.arange(2 * w, dtype=torch.float64, device=gx.device)
+    lam = (2 * torch.cos(math.pi * ky / h) - 2)[:, None] + (2 * torch.cos(math.pi * kx / w) - 2)[None, :]
+    lam[0, 0] = 1.0
+    spec = torch.fft.fft2(ext) / lam
+    spec[..., 0, 0] = 0
+    u = torch.fft.ifft2(spec).real[..., :h, :w]
+    return u.permute(1, 2, 0).to(dtype).contiguous()

@@ -35,8 +35,8 @@ from typing import Optional
 
 import torch
 
-from ..model.colour import linear_to_srgb, srgb_to_linear
-from ..train.objective import Objective
+from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
+from recgs_addon.core.train.objective import Objective
 
 #: Offset inside the logarithms, in linear light (an 8-bit sRGB level of about 25: the log of
 #: darker pixels would be mostly sensor and 8-bit noise).
