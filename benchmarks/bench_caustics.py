@@ -134,6 +134,12 @@ SURVEYS.update({
     # ... the same rows without look frames (the sand and a few rocks: little relief), and over a
     # reef (60 rocks): the bases tools/relight_survey.py puts lamps and waters over
     "rows-72": ROWS + ["--seed", "72", "--caustic-pattern", "refraction", "--caustic-strength", "0.8"],
+    # ... filmed at a diver's pace: a keyframe a second (15 % of the footprint) and five video
+    # frames between two (6 frames a second), so each seabed point stays in view for several
+    # seconds of light that forgets itself in a fifth of one: the keyframes alone see a point
+    # under a few lights, the video under many more
+    "rows-video": ROWS + ["--seed", "74", "--caustic-pattern", "refraction", "--caustic-strength", "0.8",
+                          "--caustic-dt", "1.0", "--look-frames", "5"],
     "rows-reef": ROWS + ["--seed", "73", "--rocks", "60", "--caustic-pattern", "refraction",
                          "--caustic-strength", "0.8"],
 })
