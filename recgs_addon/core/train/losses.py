@@ -117,9 +117,10 @@ def training_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: floa
     """(1 - lambda) D + lambda (1 - SSIM), with D the mean absolute error (``kind="l1"``, as
     INRIA 3DGS and RecGS), the mean squared error (``"l2"``) or the mean of ``kind(render,
     target)`` (a function giving (H, W, 3): the benchmarks' caustic likelihood,
-    benchmarks/caustic_estimators/likelihood.py). ``render``, ``target``: (H, W, 3). ``weight`` (H, W), optional: how much each pixel counts; both terms become
-    weighted means over the pixels (the SSIM term of each pixel's window), so a weight of 1
-    everywhere gives the plain loss. ``fast_ssim``: another implementation of
+    benchmarks/caustic_estimators/likelihood.py). ``render``, ``target``: (H, W, 3). ``weight``
+    (H, W), optional: how much each pixel counts; both terms become weighted means over the
+    pixels (the SSIM term of each pixel's window), so a weight of 1 everywhere gives the plain
+    loss. ``fast_ssim``: another implementation of
     :func:`ssim_term` that differentiates the render only (:func:`.numba_ssim.ssim_term`: the
     same numbers to float32 rounding), used where the target and weight need no gradient (a
     learnt target, as the joint baseline's, takes the eager term).
