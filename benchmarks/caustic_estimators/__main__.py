@@ -25,26 +25,25 @@ def main(argv: Optional[list] = None) -> int:
                                                        register)
     from recgs_addon.cli import COMMANDS, build_parser
 
-    own = argparse.ArgumentParser(add_help=False)
-    own.add_argument("--lf-lambda", type=float, default=LightFieldRecGS.lam, help="lightfield: TV weight")
-    own.add_argument("--lf-tau", type=float, default=LightFieldRecGS.tau, help="lightfield: dead band (log light)")
-    own.add_argument("--light-sigma", type=float, default=LikelihoodRecGS.sigma,
-                     help="likelihood: the light's blur in pixels at 320 px wide")
-    own.add_argument("--consensus-stat", choices=STATS, default=ConsensusRecGS.stat,
-                     help="consensus: the per-pixel statistic over the views that see it")
-    own.add_argument("--consensus-q", type=float, default=ConsensusRecGS.q, help="consensus: the quantile")
-    mine, rest = own.parse_known_args(sys.argv[1:] if argv is None else argv)
-    LightFieldRecGS.lam, LightFieldRecGS.tau = mine.lf_lambda, mine.lf_tau
-    LikelihoodRecGS.sigma = mine.light_sigma
-    ConsensusRecGS.stat, ConsensusRecGS.q = mine.consensus_stat, mine.consensus_q
     register()
     parser = build_parser()
-    for action in parser._actions:   # the train command's --estimator takes the added names too
-        if isinstance(action, argparse._SubParsersAction):
-            for sub in action.choices["train"]._actions:
-                if sub.dest == "estimator":
-                    sub.choices = tuple(sub.choices) + tuple(METHODS)
-    args = parser.parse_args(rest)
+    train = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["train"]
+    for action in train._actions:   # --estimator takes the added names too
+        if action.dest == "estimator":
+            action.choices = tuple(action.choices) + tuple(METHODS)
+    added = train.add_argument_group("the estimators the benchmarks compare")
+    added.add_argument("--lf-lambda", type=float, default=LightFieldRecGS.lam, help="lightfield: TV weight")
+    added.add_argument("--lf-tau", type=float, default=LightFieldRecGS.tau, help="lightfield: dead band (log light)")
+    added.add_argument("--light-sigma", type=float, default=LikelihoodRecGS.sigma,
+                       help="likelihood: the light's blur in pixels at 320 px wide")
+    added.add_argument("--consensus-stat", choices=STATS, default=ConsensusRecGS.stat,
+                       help="consensus: the per-pixel statistic over the views that see it")
+    added.add_argument("--consensus-q", type=float, default=ConsensusRecGS.q, help="consensus: the quantile")
+    args = parser.parse_args(argv)
+    if args.command == "train":
+        LightFieldRecGS.lam, LightFieldRecGS.tau = args.lf_lambda, args.lf_tau
+        LikelihoodRecGS.sigma = args.light_sigma
+        ConsensusRecGS.stat, ConsensusRecGS.q = args.consensus_stat, args.consensus_q
     return COMMANDS[args.command](args)
 
 
