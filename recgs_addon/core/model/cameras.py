@@ -86,9 +86,7 @@ class Camera:
         gives them, and ranges (K,), the distance from the camera's centre."""
         pc = np.asarray(points, np.float64) @ self.R.T + self.t
         z = pc[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = self.fx * pc[:, 0] / z + self.cx
-            v = self.fy * pc[:, 1] / z + self.cy
+        u, v = _pixels(pc, self.K)
         seen = np.flatnonzero((z > 1e-6) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height))
         return seen, u[seen], v[seen], np.linalg.norm(pc[seen], axis=1)
 
@@ -106,11 +104,13 @@ class Camera:
 def project_points(points: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray):
     """Pinhole projection. points (N, 3) world -> (uv (N, 2) pixels, depth (N,))."""
     pc = np.asarray(points, dtype=np.float64) @ np.asarray(R).T + np.asarray(t)
-    z = pc[:, 2]
+    return np.stack(_pixels(pc, K), axis=1), pc[:, 2]
+
+
+def _pixels(pc: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (u, v) of camera-space points ``pc`` (N, 3) through the pinhole ``K``."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = K[0, 0] * pc[:, 0] / z + K[0, 2]
-        v = K[1, 1] * pc[:, 1] / z + K[1, 2]
-    return np.stack([u, v], axis=1), z
+        return K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2], K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]
 
 
 def blender_matrix_from_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
