@@ -23,6 +23,7 @@ import torch
 from recgs_addon.core.caustics.config import register_estimator
 from recgs_addon.core.caustics.estimate import compensate_caustics
 from recgs_addon.core.caustics.recgs import RecGS
+from recgs_addon.core.errors import RecGSError
 from recgs_addon.core.train.data import view_tensors
 
 from . import lightfield, likelihood
@@ -44,7 +45,6 @@ class ConsensusRecGS(RecGS):
 
     def __init__(self, trainer, ccfg):
         if ccfg.caustic_model != "additive":
-            from recgs_addon.core.errors import RecGSError
             raise RecGSError("the consensus estimator makes additive caustic maps (caustic model additive)")
         if self.stat not in STATS:
             raise ValueError(f"unknown consensus statistic {self.stat!r} (choose from {', '.join(STATS)})")
@@ -76,7 +76,6 @@ class LightFieldRecGS(RecGS):
 
     def __init__(self, trainer, ccfg):
         if not (0 <= self.lam < float("inf") and 0 <= self.tau < float("inf")):   # NaN fails this too
-            from recgs_addon.core.errors import RecGSError
             raise RecGSError(f"light-field TV weight and dead band must be >= 0, got {self.lam}, {self.tau}")
         #: the survey's linear gain from the floor light to the mean light (3,)
         self.light_gain = torch.ones(3, device="cpu")
