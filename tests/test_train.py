@@ -861,11 +861,15 @@ def test_job_says_its_plan_and_refuses_what_cannot_fit(small_scene, tmp_path):
     """Before any training a job emits its plan (resolution, images, memory, time per 1,000
     steps). Memory too small for the images themselves, or for a budget the user set: the
     job refuses with one line naming the survey and saying what to do, and writes nothing."""
-    r = _run(_train_cmd(small_scene, tmp_path / "ok", "--iterations", "2"))
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    r = _run(_train_cmd(small_scene, tmp_path / "ok", "--iterations", "2"), env=env)
     assert r.returncode == 0, r.stderr[-2000:]
     events = [json.loads(line) for line in r.stdout.splitlines()]
     plan = next(e for e in events if e["event"] == "plan")
-    assert events.index(plan) < next(i for i, e in enumerate(events) if e["event"] == "start")
+    start = next(i for i, e in enumerate(events) if e["event"] == "start")
+    assert events.index(plan) < start
+    # the worker's threads sleep while they wait (spinning ones starve a busy machine)
+    assert events[start]["threads"]["wait"] == "PASSIVE" and events[start]["threads"]["torch"] >= 1
     assert (plan["width"], plan["height"], plan["train_views"], plan["test_views"]) == (40, 30, 6, 2)
     assert plan["seconds_per_1000"] > 0 and plan["peak_bytes"] > plan["image_bytes"] > 0
     assert plan["lines"][0].startswith("training at 40x30: 6 training and 2 held-out views")

@@ -357,6 +357,8 @@ def _plan(args, method, trainer, fitted: Optional[dict] = None):
 
 
 def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, allocator, plan, t_command) -> int:
+    import torch
+
     from ..core.io.ply import write_gaussian_ply
     from ..core.train.checkpoint import save_checkpoint
 
@@ -386,7 +388,9 @@ def _train_locked(args, out, ckpt_path, method, trainer, cfg, ccfg, state, alloc
 
     emit("start", scene=str(args.scene_dir), out=str(out), resumed=bool(state), iteration=trainer.step,
          train_views=len(trainer.data.train_ids), test_views=len(trainer.data.test_ids),
-         gaussians=int(trainer.params["means"].shape[0]), allocator=allocator, config={**asdict(cfg), **asdict(ccfg)},
+         gaussians=int(trainer.params["means"].shape[0]), allocator=allocator,
+         threads={"torch": torch.get_num_threads(), "wait": os.environ.get("OMP_WAIT_POLICY", "")},
+         config={**asdict(cfg), **asdict(ccfg)},
          plan=plan.summary())
     for message in trainer.compiler.messages:
         on_compile(message)
