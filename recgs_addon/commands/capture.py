@@ -118,6 +118,7 @@ def cmd_video(args) -> int:
         return fail(f"the video command needs the Python package '{exc.name}' "
                     + ("(PyAV: install the training engine, or pip install av==18.1.0)" if exc.name == "av"
                        else "(pip install pycolmap)"))
+    from ..core.capture.look_poses import register_looks
     from ..core.capture.sfm import SfmOptions, reconstruct
     from ..core.capture.video import (VideoOptions, describe_ranges, existing_frames, import_frames, lost_ranges,
                                       plan_windows, probe)
@@ -203,6 +204,8 @@ def cmd_video(args) -> int:
             raise SceneError(f"{args.clip}: {exc}. Choose frames closer together (a smaller --step, or a "
                              "shorter --every), match more neighbours (--overlap), or film slower with more "
                              "overlap") from exc
+        looks = register_looks(survey, model_dir, survey / "database.db",
+                               lambda done, total: progress("looks", done, total), stop)
     except Cancelled:
         emit("done", status="cancelled", reason=f"received {stop.received}", survey=str(survey))
         print(f"stopped by {stop.received}; run the same command again to continue", file=sys.stderr)
@@ -214,12 +217,19 @@ def cmd_video(args) -> int:
     finally:
         stop.restore()
     seconds = {"frames": round(t_frames, 2), **result.summary()["step_seconds"]}
+    if looks:
+        seconds["looks"] = looks["seconds"]
     registered = {im.name for im in result.reconstruction.images.values() if im.has_pose}
     lost = lost_ranges(record, registered)
     emit("done", status="done", survey=str(survey), chosen=chosen, frame_count=record["frame_count"],
-         lost=lost, **{**result.summary(), "step_seconds": seconds, "seconds": round(time.perf_counter() - t0, 2)})
+         lost=lost, looks={k: v for k, v in looks.items() if k != "seconds"},
+         **{**result.summary(), "step_seconds": seconds, "seconds": round(time.perf_counter() - t0, 2)})
     print(f"{chosen} frames of {record['frame_count']} chosen, {result.registered} registered, "
           f"{result.points} points; survey in {survey}", file=sys.stderr)
+    if looks:
+        print(f"look frames: {looks['registered']} of {looks['registered'] + looks['unregistered']} placed by their "
+              "features against the keyframes' points (the rest are placed between their keyframes in time)",
+              file=sys.stderr)
     if lost:
         print(f"not registered: {describe_ranges(lost)} of the clip ({chosen - result.registered} frames): the "
               "survey lacks the seabed seen only there. Import again with --overwrite and frames closer "
