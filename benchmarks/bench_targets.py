@@ -1,7 +1,7 @@
 """How good are the pass estimator's caustic-free targets, before any training?
 
     .venv/bin/python benchmarks/bench_targets.py SURVEY [--model MODEL.ply] [--depth points|true|model]
-        [--statistics floor,field] [--bound] [--set FIELD=VALUE ...]
+        [--statistics floor,field] [--bound] [--looks [--look-max-frames N]] [--set FIELD=VALUE ...]
 
 For a generated survey with ground truth (``clean/``), builds every training frame's target as
 the pass estimator does (core/caustics/passes.py) and prints, against ground truth: the photos,
@@ -15,7 +15,9 @@ estimator's ceiling) or ``model`` (the given model's own rendered depth, unrefin
 modelled, then the colour), with the independent looks a pixel had. ``--bound`` (with the true
 depth) adds the statistics' ceilings: each photo with its true light, denoised as the field
 denoises its light, taken off, and the floor taken over the frames whose *true* light is lowest.
-Prints the time of each part.
+``--looks``: the keyframes gather also from the survey's look frames (``looks.json``, placed
+as a job places them; their depth from the sparse points), as a run does. Prints the time of
+each part.
 """
 from __future__ import annotations
 
@@ -64,6 +66,10 @@ def main(argv=None) -> int:
     ap.add_argument("--holdout-every", type=int, default=8)
     ap.add_argument("--statistics", default="floor,field", help="the pass estimator's statistics to compare")
     ap.add_argument("--bound", action="store_true", help="the statistics' ceilings (needs --depth true)")
+    ap.add_argument("--looks", action="store_true",
+                    help="gather also from the survey's look frames (looks.json; their depth from the sparse points)")
+    ap.add_argument("--look-max-frames", type=int, default=passes.LOOK_MAX_FRAMES,
+                    help="with --looks: the frames a keyframe gathers from at most")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="a PassSettings field for this measurement (repeatable), e.g. --set per_pass=8")
     args = ap.parse_args(argv)
@@ -128,10 +134,17 @@ def main(argv=None) -> int:
           f"decorrelation time {light.get('light_seconds')} s (shared variance by lag {light['shared']}; {t_light:.1f} s)")
     if args.set:
         print(f"  settings: {', '.join(args.set)}")
+    frames, wide, extra = views, overlap, {}
+    if args.looks:
+        frames, wide, settings = with_look_frames(args.survey, scene, data, ids, views, overlap, settings, times,
+                                                  args.look_max_frames)
+        extra = {"ids": list(range(len(views))), "sources": list(range(len(frames))),
+                 "keyframes": set(range(len(views)))}
+        print(f"  look frames: {len(frames) - len(views)} gathered from (at most {args.look_max_frames} frames a keyframe)")
     for stat in filter(None, args.statistics.split(",")):
         t = time.perf_counter()
-        targets, info = passes.pass_targets(views, dataclasses.replace(settings, statistic=stat), fallback,
-                                            overlap=overlap)
+        targets, info = passes.pass_targets(frames, dataclasses.replace(settings, statistic=stat), fallback,
+                                            overlap=wide, **extra)
         t_est = time.perf_counter() - t
         p = np.mean([psnr(x.clamp(0, 1), gts[i]) for x, i in zip(targets, ids)])
         print(f"  targets, {stat}: {p:.2f} dB (median passes {np.median(info['passes']):g}, independent looks "
@@ -139,6 +152,34 @@ def main(argv=None) -> int:
     if args.bound:
         bound(views, settings, overlap, ids, gts)
     return 0
+
+
+def with_look_frames(survey: Path, scene, data: TrainData, ids, views, overlap, settings, times, max_frames: int):
+    """The keyframes' ``views`` and the survey's look frames (placed as a job places them, at the
+    keyframes' size, their depth from the sparse points) as frames to gather from: (frames,
+    overlap of them all, settings with the looks)."""
+    from recgs_addon.core.io.images import read_image
+    from recgs_addon.core.io.looks import place_looks, read_looks
+
+    found = read_looks(survey)
+    if found is None:
+        raise SystemExit(f"{survey}: no looks.json")
+    keys = [data.camera(i) for i in ids]
+    placed, _ = place_looks(found.looks, keys, [times.get(c.name) for c in keys])
+    looks = []
+    for lk, cam, _ in placed:
+        photo = torch.from_numpy(read_image(lk.path, size=(cam.width, cam.height)))
+        vm, K = view_tensors(cam, "cpu")
+        nan = torch.full((cam.height, cam.width), float("nan"))
+        looks.append(geometry.PassView(photo, nan, torch.zeros(cam.height, cam.width, dtype=torch.bool), vm, K, lk.time))
+    geometry.prior_geometry(looks, torch.tensor(np.asarray(scene.points), dtype=torch.float32))
+    n, m = len(views), len(looks)
+    wide = np.zeros((n + m, n + m))
+    wide[:n, :n] = overlap
+    wide[np.ix_(range(n), range(n, n + m))] = geometry.overlap_block(views, looks)
+    frames = views + looks
+    passes.LOOK_MAX_FRAMES = max_frames
+    return frames, wide, passes.with_looks(settings, [v.time for v in frames])
 
 
 def bound(views, settings, overlap, ids, gts) -> None:

@@ -584,7 +584,7 @@ def test_import_video_operator_runs_the_job_and_imports(bpy_session, clip, tmp_p
     assert job.kind == "video" and job.argv[3:5] == ["video", str(clip[0])]
     assert job_follow.wait() == "DONE", s.message
     phases = {e["phase"] for e in job.history if e["event"] == "progress"}
-    assert phases == {"frames", "features", "matching", "mapping"}
+    assert phases == {"frames", "features", "matching", "mapping", "looks"}
     obj = bpy.context.active_object
     assert is_gaussian_object(obj) and len(obj.data.vertices) == job.last["done"]["points"]
     assert len([o for o in bpy.data.objects if o.type == "CAMERA"]) == job.last["done"]["registered"]

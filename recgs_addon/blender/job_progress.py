@@ -7,7 +7,8 @@ import bpy
 #: Share of a job's progress bar each phase takes (start, span).
 PHASE_SPANS = {
     "sfm": {"features": (0.0, 0.4), "matching": (0.4, 0.3), "mapping": (0.7, 0.3)},
-    "video": {"frames": (0.0, 0.2), "features": (0.2, 0.3), "matching": (0.5, 0.25), "mapping": (0.75, 0.25)},
+    "video": {"frames": (0.0, 0.2), "features": (0.2, 0.25), "matching": (0.45, 0.2), "mapping": (0.65, 0.15),
+              "looks": (0.8, 0.2)},
 }
 
 
