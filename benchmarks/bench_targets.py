@@ -14,7 +14,9 @@ estimator's ceiling) or ``model`` (the given model's own rendered depth, unrefin
 ``--statistics`` is measured (``floor``: the floor of the light; ``field``: each frame's light
 modelled, then the colour), with the independent looks a pixel had. ``--bound`` (with the true
 depth) adds the statistics' ceilings: each photo with its true light, denoised as the field
-denoises its light, taken off, and the floor taken over the frames whose *true* light is lowest.
+denoises its light, taken off; the floor taken over the frames whose *true* light is lowest;
+and what the gathered frames hold at best, the ground truth warped from them into each frame
+against its own.
 ``--looks``: the keyframes gather also from the survey's look frames (``looks.json``, placed
 as a job places them; their depth from the sparse points), as a run does. Prints the time of
 each part.
@@ -151,7 +153,31 @@ def main(argv=None) -> int:
               f"{np.median(info['looks']):.1f}, share from the passes {np.mean(info['share']):.2f}; {t_est:.1f} s)")
     if args.bound:
         bound(views, settings, overlap, ids, gts)
+        resampling(views, settings, overlap, gts, ids)
     return 0
+
+
+def resampling(views, settings, overlap, gts, ids, every: int = 4) -> None:
+    """What the gathered frames can hold at best on this geometry: the ground truth of every
+    ``every``-th frame against the ground truth of the frames it gathers from, warped into it
+    (resampling, and what the renderer makes of a view: noise, shading that follows the view),
+    one frame at a time and their mean."""
+    from recgs_addon.core.model.colour import linear_to_srgb
+
+    clean = [dataclasses.replace(v, photo=gts[i]) for v, i in zip(views, ids)]
+    one, mean = [], []
+    for k in range(0, len(clean), every):
+        samples, valid, _, _ = passes.gather(k, clean, passes.choose_passes(k, clean, overlap, settings),
+                                             settings.depth_tol)
+        own = linear_to_srgb(samples[0].clamp(0, 1))
+        for f in range(1, len(samples)):
+            if int(valid[f].sum()) >= 1000:
+                one.append(psnr(linear_to_srgb(samples[f].clamp(0, 1)), own, valid[f]))
+        w = valid[1:].float().unsqueeze(-1)
+        avg = (samples[1:] * w).sum(0) / w.sum(0).clamp_min(1)
+        mean.append(psnr(linear_to_srgb(avg.clamp(0, 1)), own, valid[1:].any(0)))
+    print(f"  ground truth warped from the gathered frames into each frame: one frame {np.median(one):.2f} dB "
+          f"(median of {len(one)}), their mean {np.mean(mean):.2f} dB")
 
 
 def with_look_frames(survey: Path, scene, data: TrainData, ids, views, overlap, settings, times, max_frames: int):
