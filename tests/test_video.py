@@ -589,6 +589,8 @@ def test_import_video_operator_runs_the_job_and_imports(bpy_session, clip, tmp_p
     assert is_gaussian_object(obj) and len(obj.data.vertices) == job.last["done"]["points"]
     assert len([o for o in bpy.data.objects if o.type == "CAMERA"]) == job.last["done"]["registered"]
     assert "24 frames" in s.message
+    looks = job.last["done"]["looks"]
+    assert f"{looks['registered'] + looks['unregistered']} look frames kept, {looks['registered']} placed" in s.message
     assert ("Not registered:" in s.message) == bool(job.last["done"]["lost"]), s.message
     with pytest.raises(RuntimeError, match="already"):
         bpy.ops.recgs.import_video()

@@ -147,6 +147,10 @@ def _apply(a: ActiveJob, s, ev: dict) -> None:
         elif kind == "done" and a.job.kind == "video":
             s.message = (f"{ev.get('chosen')} frames of {ev.get('frame_count')} chosen, registered "
                          f"{ev.get('registered')}, {ev.get('points')} points")
+            looks = ev.get("looks") or {}
+            if looks:
+                n = looks.get("registered", 0) + looks.get("unregistered", 0)
+                s.message += f"; {n} look frames kept, {looks.get('registered', 0)} placed by their features"
             if ev.get("lost"):
                 s.message += (f". Not registered: {describe_ranges(ev['lost'])} of the clip; the survey lacks what "
                               "only those frames saw (film it again slowly, or a smaller step on the command line)")
