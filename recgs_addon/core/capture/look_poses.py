@@ -86,6 +86,15 @@ def _extractor(pycolmap, upsample: bool) -> Callable[[np.ndarray], tuple[np.ndar
     return extract
 
 
+def _project(cam, xc: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels of camera-frame points ``xc`` (N, 3) through ``cam``'s lens (pycolmap 4
+    takes the points, 3.x their normalised coordinates)."""
+    try:
+        return np.asarray(cam.img_from_cam(xc), np.float64)
+    except TypeError:
+        return np.asarray(cam.img_from_cam(xc[:, :2] / xc[:, 2:3]), np.float64)
+
+
 def _matches(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(M, 2) indices of mutual nearest neighbours between unit descriptors ``a`` and ``b``
     that pass the ratio test."""
@@ -166,7 +175,7 @@ def register_looks(survey: str | Path, model_dir: str | Path, database: str | Pa
                 pose = ans["cam_from_world"]
                 R, t = pose.rotation.matrix(), np.asarray(pose.translation)
                 xc = np.array(pts3)[mask] @ R.T + t
-                proj = np.asarray(cam.img_from_cam(xc), np.float64)
+                proj = _project(cam, xc)
                 err = float(np.median(np.linalg.norm(proj - np.array(pts2)[mask], axis=1))) if mask.any() else np.inf
                 if mask.sum() >= MIN_INLIERS and mask.mean() >= MIN_INLIER_SHARE and err <= MAX_ERROR_PX:
                     q = np.asarray(pose.rotation.quat, np.float64)     # x, y, z, w
