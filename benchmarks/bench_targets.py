@@ -199,13 +199,10 @@ def with_look_frames(survey: Path, scene, data: TrainData, ids, views, overlap, 
         nan = torch.full((cam.height, cam.width), float("nan"))
         looks.append(geometry.PassView(photo, nan, torch.zeros(cam.height, cam.width, dtype=torch.bool), vm, K, lk.time))
     geometry.prior_geometry(looks, torch.tensor(np.asarray(scene.points), dtype=torch.float32))
-    n, m = len(views), len(looks)
-    wide = np.zeros((n + m, n + m))
-    wide[:n, :n] = overlap
-    wide[np.ix_(range(n), range(n, n + m))] = geometry.overlap_block(views, looks)
     frames = views + looks
     passes.LOOK_MAX_FRAMES = max_frames
-    return frames, wide, passes.with_looks(settings, [v.time for v in frames])
+    return (frames, geometry.with_looks_overlap(overlap, views, looks, range(len(views))),
+            passes.with_looks(settings, [v.time for v in frames]))
 
 
 def bound(views, settings, overlap, ids, gts) -> None:

@@ -159,7 +159,7 @@ def score_model(ply: Path, survey: Path, held: list[str], al: dict) -> float:
     return float(np.mean(out))
 
 
-def score_targets(run: Path, imported: Path, survey: Path, keys: dict) -> tuple[float, int] | None:
+def score_targets(run: Path, survey: Path, keys: dict) -> tuple[float, int] | None:
     """Mean PSNR of the caustic-free images of imported keyframes against clean/."""
     out = []
     for name, src in keys.items():
@@ -234,7 +234,7 @@ def main(argv=None) -> int:
         mt = json.loads((run / "metrics.json").read_text())
         ps = mt.get("passes") or {}
         lf = ps.get("look_frames") or {}
-        tg = score_targets(run, imported, a.survey, al["keyframes"]) if (run / "decaustic").is_dir() else None
+        tg = score_targets(run, a.survey, al["keyframes"]) if (run / "decaustic").is_dir() else None
         rows.append({"method": m, "heldout_gt": score_model(run / "point_cloud.ply", a.survey, held, al),
                      "targets": tg, "steps": mt.get("iterations"), "gaussians": mt.get("gaussians"),
                      "looks": ps.get("median_looks"), "look_frames": lf, "caustic_s": ps.get("seconds"),

@@ -94,16 +94,18 @@ def psnr_per_error(survey: Path) -> float:
     """PSNR (dB) of ``survey``'s clean/ photos when every pixel's linear colour is off by a
     relative error of RMS 1 (the error then adds ``-20 log10(rms)``): what a relative colour
     error costs in sRGB on that seabed."""
-    from recgs_addon.core.io.images import read_image
-    from recgs_addon.core.model.colour import srgb_to_linear
     import torch
+
+    from recgs_addon.core.io.images import read_image
+    from recgs_addon.core.model.colour import linear_to_srgb, srgb_to_linear
 
     sq = []
     for f in sorted((survey / "clean").glob("*.png")):
-        lin = srgb_to_linear(torch.from_numpy(read_image(f)).double()).numpy()
-        # d sRGB / d linear, times the linear level: the sRGB change of a relative change
-        slope = np.where(lin <= 0.0031308, 12.92, 1.055 / 2.4 * np.maximum(lin, 1e-9) ** (1 / 2.4 - 1))
-        sq.append(np.mean((slope * lin) ** 2))
+        lin = srgb_to_linear(torch.from_numpy(read_image(f)).double())
+        # the sRGB change of a small relative change of the linear level, per unit of it
+        e = 1e-4
+        change = (linear_to_srgb(lin * (1 + e)) - linear_to_srgb(lin * (1 - e))) / (2 * e)
+        sq.append(float((change ** 2).mean()))
     return float(-10 * np.log10(np.mean(sq)))
 
 

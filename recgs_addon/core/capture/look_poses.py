@@ -48,19 +48,19 @@ PROGRESS_STEPS = 25
 
 
 def _keyframe_table(rec, db) -> dict:
-    """{image name: (keypoints (N, 2) px, unit descriptors (N, 128) float32, point ids (N,))}
-    of the model's registered images that hold a 3D point."""
+    """{image name: (unit descriptors (N, 128) float32, world points (N, 3))} of the features
+    of the model's registered images that belong to one of its 3D points."""
     out = {}
     for image_id, im in rec.images.items():
         if not im.has_pose:
             continue
-        kp = np.asarray(db.read_keypoints(image_id), np.float64)[:, :2]
         raw = db.read_descriptors(image_id)
         desc = np.asarray(getattr(raw, "data", raw), np.float32)
-        ids = np.array([p.point3D_id if p.has_point3D() else -1 for p in im.points2D], np.int64)
-        n = min(len(kp), len(desc), len(ids))
-        desc = desc[:n] / np.maximum(np.linalg.norm(desc[:n], axis=1, keepdims=True), 1e-9)
-        out[im.name] = (kp[:n], desc, ids[:n])
+        ids = [(k, p.point3D_id) for k, p in enumerate(im.points2D) if p.has_point3D() and k < len(desc)]
+        rows = np.array([k for k, _ in ids], np.int64)
+        desc = desc[rows] / np.maximum(np.linalg.norm(desc[rows], axis=1, keepdims=True), 1e-9)
+        xyz = np.array([rec.points3D[pid].xyz for _, pid in ids], np.float64).reshape(-1, 3)
+        out[im.name] = (desc, xyz)
     return out
 
 
@@ -159,15 +159,12 @@ def register_looks(survey: str | Path, model_dir: str | Path, database: str | Pa
         desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-9)
         pts2, pts3, seen = [], [], set()
         for name in near:
-            _, k_desc, k_ids = table[name]
-            with_point = np.nonzero(k_ids >= 0)[0]
-            for i, j in _matches(desc, k_desc[with_point]):
-                pid = int(k_ids[with_point[j]])
-                if i in seen:
-                    continue
-                seen.add(int(i))
-                pts2.append(kp[i])
-                pts3.append(rec.points3D[pid].xyz)
+            k_desc, k_xyz = table[name]
+            for i, j in _matches(desc, k_desc):
+                if int(i) not in seen:   # a feature matched in both keyframes counts once
+                    seen.add(int(i))
+                    pts2.append(kp[i])
+                    pts3.append(k_xyz[j])
         if len(pts2) >= MIN_INLIERS:
             ans = pycolmap.estimate_and_refine_absolute_pose(np.array(pts2), np.array(pts3), cam, est)
             if ans is not None:

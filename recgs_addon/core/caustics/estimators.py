@@ -264,11 +264,9 @@ class Estimates:
         looks, look_info = self._look_views(views, ids, scale, pts, check, light)
         frames, sources, wide = views, train, overlap
         if looks:
-            n, m = len(views), len(looks)
-            wide = np.zeros((n + m, n + m))
-            wide[:n, :n] = overlap
-            wide[np.ix_(train, range(n, n + m))] = geometry.overlap_block([views[k] for k in train], looks)
-            frames, sources = views + looks, train + list(range(n, n + m))
+            n = len(views)
+            wide = geometry.with_looks_overlap(overlap, views, looks, train)
+            frames, sources = views + looks, train + list(range(n, n + len(looks)))
             settings = passes.with_looks(settings, [v.time for v in frames])
         parts["looks"] = time.perf_counter() - t - sum(parts.values())
         # with the water modelled, the frames' colours are compared at each frame's own range

@@ -122,6 +122,18 @@ def overlap_matrix(views: Sequence[PassView], depth_tol: float = DEPTH_TOL) -> n
     return out
 
 
+def with_looks_overlap(overlap: np.ndarray, views: Sequence[PassView], looks: Sequence[PassView],
+                       rows: Sequence[int]) -> np.ndarray:
+    """The :func:`overlap_matrix` ``overlap`` of ``views`` widened by the look frames ``looks``
+    (indices ``len(views)`` on): the share of each of the frames ``rows`` that each look frame
+    sees; look frames gather nothing, so their own rows stay 0."""
+    n, m = len(views), len(looks)
+    wide = np.zeros((n + m, n + m))
+    wide[:n, :n] = overlap
+    wide[np.ix_(list(rows), range(n, n + m))] = overlap_block([views[k] for k in rows], looks)
+    return wide
+
+
 def overlap_block(rows: Sequence[PassView], cols: Sequence[PassView], depth_tol: float = DEPTH_TOL) -> np.ndarray:
     """(len(rows), len(cols)) share of each frame of ``rows``' covered grid pixels that each of
     ``cols`` sees (:func:`overlap_matrix` of one set, or between two: the keyframes and the look
