@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/water_budget.py photos [--waters jerlov-5C,jerlov-I] [--base rows-72]
     .venv/bin/python benchmarks/water_budget.py fit --waters jerlov-5C [--rho 1.0] [--colours relit,clean,constant]
+    .venv/bin/python benchmarks/water_budget.py seabed [--base rows-72]
 
 * **photos**: every fourth photo of a battery item (``OUT/surveys/BASE+WATER``, made by
   ``bench_water.py --only battery``) taken out of the water with the true range of each pixel
@@ -18,6 +19,10 @@
   water exact); each point's mean clean colour in every view, under that water (``constant``:
   what the model assumes). ``--rho`` replaces the generator's backscatter rate by that multiple
   of its attenuation (the fit ties the two where one altitude leaves the rate free).
+* **seabed**: the base's clean photos (no water): each sparse point's linear colour regressed on
+  its range over the views that see it, and those slopes regressed on the point's level (least
+  squares, points seen from ranges x1.1 apart or more): how the seabed's own colour changes with
+  range, in the form the water's takes (slope = -a x level + a V + V').
 """
 from __future__ import annotations
 
@@ -105,9 +110,39 @@ def fit(survey: Path, base: Path, colours: str, rho: float | None) -> dict:
             "rate_tied": got.get("rate_tied"), "median_range": round(length, 3)}
 
 
+def seabed(base: Path) -> list[dict]:
+    """See the module: per channel the slope's coefficient on the level and its value at level zero."""
+    import torch
+    from recgs_addon.core.model.colour import srgb_to_linear
+    from recgs_addon.core.train import water
+    from recgs_addon.core.train.config import TrainConfig
+    from recgs_addon.core.train.trainer import load_data
+    data = load_data(base, TrainConfig(), "clean")
+    obs = water._observations(data)
+    water._sample_colours(data, obs)
+    lin = srgb_to_linear(torch.from_numpy(obs["colour"])).double().numpy()
+    pt, r, n = obs["point"], obs["range"], len(obs["points"])
+    count = np.bincount(pt, minlength=n)
+    dr = r - (np.bincount(pt, r, n) / np.maximum(count, 1))[pt]
+    den = np.bincount(pt, dr ** 2, n)
+    near, far = np.full(n, np.inf), np.zeros(n)
+    np.minimum.at(near, pt, r)
+    np.maximum.at(far, pt, r)
+    ok = (count >= 3) & (den > 0) & (far > 1.1 * near)
+    rows = []
+    for c in range(3):
+        level = np.bincount(pt, lin[:, c], n) / np.maximum(count, 1)
+        slope = np.bincount(pt, dr * (lin[:, c] - level[pt]), n) / np.where(den > 0, den, 1.0)
+        w = np.sqrt(den[ok])
+        coef = np.linalg.lstsq(np.stack([level[ok], np.ones(ok.sum())], 1) * w[:, None], slope[ok] * w, rcond=None)[0]
+        rows.append({"channel": "RGB"[c], "per_level": round(float(coef[0]), 4), "at_level_zero": round(float(coef[1]), 4),
+                     "points": int(ok.sum())})
+    return rows
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("what", choices=("photos", "fit"))
+    p.add_argument("what", choices=("photos", "fit", "seabed"))
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench")
     p.add_argument("--base", default="rows-72")
     p.add_argument("--waters", default="coastal,clear,green,jerlov-I,jerlov-III,jerlov-1C,jerlov-3C,jerlov-5C,jerlov-7C")
@@ -115,6 +150,10 @@ def main() -> int:
     p.add_argument("--rho", type=float, default=None, help="fit: the true backscatter rate over the attenuation")
     a = p.parse_args()
     base = a.out / "surveys" / a.base
+    if a.what == "seabed":
+        for row in seabed(base):
+            print(json.dumps(row))
+        return 0
     for w in a.waters.split(","):
         survey = a.out / "surveys" / f"{a.base}+{w}"
         if not (survey / "sparse" / "0").is_dir():
