@@ -347,6 +347,65 @@ def test_video_import_places_each_look_frame_by_its_features(clip, imported):
     assert checked >= 0.5 * len(placed)
 
 
+def test_a_stopped_look_placing_keeps_what_it_placed_and_goes_on(imported, tmp_path, monkeypatch):
+    """Stopped halfway, the placing of look frames keeps the frames it placed in looks.json; run
+    again against the same model it places only the rest (the frames' features are found once
+    each), and once more it places none; against another model it places them all again."""
+    import shutil
+    from recgs_addon.core.capture import look_poses
+    from recgs_addon.core.io.looks import model_digest
+    out = imported[0]
+    survey = tmp_path / "survey"
+    for name in ("looks", "sparse"):
+        shutil.copytree(out / name, survey / name)
+    for name in ("looks.json", "frames.json", "database.db"):
+        shutil.copy2(out / name, survey / name)
+    doc = json.loads((out / "looks.json").read_text())
+    whole = doc["looks"]
+    n, half = len(whole), len(whole) // 2
+    assert doc["placing"] == {"model": model_digest(out / "sparse" / "0"), "done": n}
+    doc.pop("placing")                     # as the import left it before placing any
+    (survey / "looks.json").write_text(json.dumps(doc))
+    extracted = [0]
+    real = look_poses._extractor
+
+    def counting(*a, **k):
+        run = real(*a, **k)
+
+        def extract(grey):
+            extracted[0] += 1
+            return run(grey)
+        return extract
+    monkeypatch.setattr(look_poses, "_extractor", counting)
+    model, db = survey / "sparse" / "0", survey / "database.db"
+    asked = [0]
+
+    def stop_halfway():
+        asked[0] += 1
+        return asked[0] > half
+    with pytest.raises(Cancelled):
+        look_poses.register_looks(survey, model, db, should_stop=stop_halfway)
+    doc = json.loads((survey / "looks.json").read_text())
+    assert doc["placing"]["done"] == half and extracted[0] == half
+    placed_first = [lk.get("qvec") for lk in doc["looks"][:half]]
+    assert abs(sum(q is not None for q in placed_first) - sum("qvec" in lk for lk in whole[:half])) <= 2
+    reported = []
+    got = look_poses.register_looks(survey, model, db, progress=lambda done, total: reported.append(done))
+    assert got["reused"] == half and extracted[0] == n and reported[0] == half and reported[-1] == n
+    doc = json.loads((survey / "looks.json").read_text())
+    assert [lk.get("qvec") for lk in doc["looks"][:half]] == placed_first
+    assert got["registered"] == sum("qvec" in lk for lk in doc["looks"]) and doc["placing"]["done"] == n
+    # as many placed as the import's own uninterrupted run (RANSAC may tip a marginal frame)
+    assert abs(got["registered"] - sum("qvec" in lk for lk in whole)) <= max(2, n // 20)
+    again = look_poses.register_looks(survey, model, db)
+    assert again["reused"] == n and extracted[0] == n and again["registered"] == got["registered"]
+    other = survey / "sparse" / "text"
+    other.mkdir()
+    pycolmap.Reconstruction(str(model)).write_text(str(other))
+    moved = look_poses.register_looks(survey, other, db)
+    assert moved["reused"] == 0 and extracted[0] == 2 * n
+
+
 def test_video_command_solves_the_cameras(clip, imported):
     out, r, events = imported
     phases = [e["phase"] for e in events if e["event"] == "progress"]
@@ -418,6 +477,41 @@ def test_a_stopped_import_continues_where_it_stopped(clip, tmp_path):
     assert ev[0]["resumed"] is False and record["stats"]["windows"] == 10 and len(record["frames"]) == 8
     assert sorted(p.name for p in (out / "images").iterdir()) == [f["name"] for f in record["frames"]]
     assert not (out / "sparse").exists()
+
+
+def test_an_import_stopped_while_placing_look_frames_goes_on_from_them(clip, tmp_path):
+    """Stopped after SfM wrote its model, while the look frames were being placed, the same
+    command goes on: the frames, features, matches and the model are reused (no mapping again),
+    the look frames placed before the stop are kept, and only then is the survey made."""
+    out = tmp_path / "survey"
+    proc = subprocess.Popen([sys.executable, "-m", "recgs_addon", "video", str(clip[0]), "--out", str(out)],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    events = []
+    for line in proc.stdout:
+        events.append(json.loads(line))
+        if events[-1].get("phase") == "looks" and events[-1]["done"] > 0:
+            proc.send_signal(signal.SIGTERM)
+            break
+    events += [json.loads(line) for line in proc.stdout]
+    assert proc.wait(120) == 0, proc.stderr.read()[-2000:]
+    assert events[-1]["status"] == "cancelled"
+    placed = json.loads((out / "looks.json").read_text())["placing"]["done"]
+    assert 0 < placed < len(json.loads((out / "looks.json").read_text())["looks"])
+    model = (out / "sparse" / "0" / "images.bin").read_bytes()
+    from recgs_addon.core.io.looks import placing_finished
+    assert not placing_finished(out, out / "sparse" / "0")      # Blender's Import Video goes on too
+    r, ev = run_video(clip[0], out)
+    assert r.returncode == 0, r.stderr[-2000:]
+    done = ev[-1]
+    assert ev[0]["resumed"] is True and done["status"] == "done"
+    assert done["reused"] == ["features", "matching", "mapping"] and done["step_seconds"]["mapping"] == 0.0
+    assert (out / "sparse" / "0" / "images.bin").read_bytes() == model
+    looks = [e for e in ev if e.get("phase") == "looks"]
+    assert looks[0]["done"] >= placed and f"{placed} of them were placed by an earlier run" in r.stderr
+    assert done["looks"]["registered"] + done["looks"]["unregistered"] == looks[-1]["total"]
+    assert placing_finished(out, out / "sparse" / "0")
+    r, ev = run_video(clip[0], out)
+    assert r.returncode == 1 and "already made" in ev[-1]["message"]
 
 
 def test_a_stopped_frame_choice_leaves_nothing(clip, tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import bpy
 
+from ..core.io.looks import placing_finished
 from . import jobs
 from .job_follow import _begin, _check_free
 from .workflow import WorkflowError, _abspath, _check_modules, _run
@@ -46,7 +47,8 @@ def start_video_import(scene, echo_stderr: bool = False) -> str:
                             "or choose a Python with PyAV in the preferences")
     _check_modules("pycolmap", what="Import Video")
     target = _abspath(s.scene_dir) or clip.parent / f"{clip.stem}_survey"
-    if (target / "sparse" / "0").exists():
+    # a job stopped while it placed the look frames has its model already: it goes on
+    if (target / "sparse" / "0").exists() and placing_finished(target, target / "sparse" / "0"):
         raise WorkflowError(f"{target}: already has a COLMAP model (sparse/0); use Import COLMAP, or clear "
                             "the Scene Folder to import the video beside it")
     argv = jobs.video_command(clip, target, s.video_frames, s.video_every, s.video_max_side)

@@ -119,6 +119,7 @@ def cmd_video(args) -> int:
                     + ("(PyAV: install the training engine, or pip install av==18.1.0)" if exc.name == "av"
                        else "(pip install pycolmap)"))
     from ..core.capture.look_poses import register_looks
+    from ..core.io.looks import placing_finished
     from ..core.capture.sfm import SfmOptions, reconstruct
     from ..core.capture.video import (VideoOptions, describe_ranges, existing_frames, import_frames, lost_ranges,
                                       plan_windows, probe)
@@ -163,7 +164,7 @@ def cmd_video(args) -> int:
                     path.unlink()
             if (survey / "sparse").is_dir() and not any((survey / "sparse").iterdir()):
                 (survey / "sparse").rmdir()
-        elif model_dir.exists():
+        elif model_dir.exists() and placing_finished(survey, model_dir):
             raise RecGSError(f"{model_dir}: the survey is already made (import it, or pass --overwrite "
                              "to import the clip again)")
         record = existing_frames(survey, args.clip, options)
@@ -222,13 +223,14 @@ def cmd_video(args) -> int:
     registered = {im.name for im in result.reconstruction.images.values() if im.has_pose}
     lost = lost_ranges(record, registered)
     emit("done", status="done", survey=str(survey), chosen=chosen, frame_count=record["frame_count"],
-         lost=lost, looks={k: v for k, v in looks.items() if k != "seconds"},
+         lost=lost, looks={k: looks[k] for k in ("registered", "unregistered") if k in looks},
          **{**result.summary(), "step_seconds": seconds, "seconds": round(time.perf_counter() - t0, 2)})
     print(f"{chosen} frames of {record['frame_count']} chosen, {result.registered} registered, "
           f"{result.points} points; survey in {survey}", file=sys.stderr)
     if looks:
         print(f"look frames: {looks['registered']} of {looks['registered'] + looks['unregistered']} placed by their "
-              "features against the keyframes' points (the rest are placed between their keyframes in time)",
+              "features against the keyframes' points (the rest are placed between their keyframes in time)"
+              + (f"; {looks['reused']} of them were placed by an earlier run" if looks.get("reused") else ""),
               file=sys.stderr)
     if lost:
         print(f"not registered: {describe_ranges(lost)} of the clip ({chosen - result.registered} frames): the "

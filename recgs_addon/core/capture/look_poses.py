@@ -13,7 +13,9 @@ LO-RANSAC, then a non-linear refinement). A pose is kept where enough points agr
 (:data:`MIN_INLIERS`, :data:`MIN_INLIER_SHARE`) and their reprojection error is small
 (:data:`MAX_ERROR_PX`); a frame that cannot be placed so keeps no pose, and a job places it
 between its keyframes and checks it there (``place_looks``). The poses go into ``looks.json``
-(``qvec``, ``tvec``, and ``inliers``, ``error_px``).
+(``qvec``, ``tvec``, and ``inliers``, ``error_px``), with how far the placing got against which
+model (``"placing"``): a stopped import keeps the frames placed so far, and one run again
+against the same model places only the rest.
 """
 from __future__ import annotations
 
@@ -28,7 +30,7 @@ import numpy as np
 from ..errors import Cancelled
 from ..io.atomic import atomic_path
 from ..io.images import image_size, read_image
-from ..io.looks import LOOKS_DIR, LOOKS_FILE
+from ..io.looks import LOOKS_DIR, LOOKS_FILE, model_digest
 
 #: Long side (px) of a look frame as its features are found, from the image itself (not from it
 #: upsampled twice, SIFT's first octave): a look frame serves the caustic work at the training
@@ -43,7 +45,7 @@ RATIO = 0.8
 MIN_INLIERS = 40
 MIN_INLIER_SHARE = 0.3
 MAX_ERROR_PX = 1.5
-#: Progress reports over the whole registration, at most.
+#: Progress reports over the whole registration, at most (``looks.json`` is written at each).
 PROGRESS_STEPS = 25
 
 
@@ -115,8 +117,9 @@ def register_looks(survey: str | Path, model_dir: str | Path, database: str | Pa
                    should_stop: Callable[[], bool] = lambda: False) -> dict:
     """Register the look frames of ``survey`` (its ``looks.json``) against the model in
     ``model_dir`` and the features in ``database``; writes their poses into ``looks.json`` and
-    returns the counts {"registered", "unregistered", "seconds"} (empty where the survey has no
-    look frames)."""
+    returns the counts {"registered", "unregistered", "reused" (the frames placed before against
+    the same model, kept), "seconds"} (empty where the survey has no look frames). Stopped
+    (``should_stop``), it keeps what it placed and raises :class:`Cancelled`."""
     import pycolmap
 
     survey = Path(survey)
@@ -136,9 +139,23 @@ def register_looks(survey: str | Path, model_dir: str | Path, database: str | Pa
     extractors: dict = {}
     est = pycolmap.AbsolutePoseEstimationOptions()
     est.ransac.max_error = 4.0
-    registered = 0
-    for n, lk in enumerate(looks):
+    digest = model_digest(model_dir)
+    placing = doc.get("placing") or {}
+    start = min(int(placing.get("done", 0)), len(looks)) if placing.get("model") == digest else 0
+    registered = sum("qvec" in lk for lk in looks[:start])
+
+    def save(done: int) -> None:
+        doc["placing"] = {"model": digest, "done": done}
+        with atomic_path(listing, "look frame list") as tmp:
+            tmp.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+
+    every = max(1, len(looks) // PROGRESS_STEPS)
+    if start and progress is not None:
+        progress(start, len(looks))
+    for n in range(start, len(looks)):
+        lk = looks[n]
         if should_stop():
+            save(n)
             raise Cancelled("stopped while placing the look frames")
         for k in ("qvec", "tvec", "inliers", "error_px"):
             lk.pop(k, None)
@@ -179,9 +196,12 @@ def register_looks(survey: str | Path, model_dir: str | Path, database: str | Pa
                     lk.update(qvec=[float(q[3]), float(q[0]), float(q[1]), float(q[2])],
                               tvec=[float(x) for x in t], inliers=int(mask.sum()), error_px=round(err, 3))
                     registered += 1
-        if progress is not None and ((n + 1) % max(1, len(looks) // PROGRESS_STEPS) == 0 or n + 1 == len(looks)):
-            progress(n + 1, len(looks))
-    with atomic_path(listing, "look frame list") as tmp:
-        tmp.write_text(json.dumps(doc, indent=1), encoding="utf-8")
-    return {"registered": registered, "unregistered": len(looks) - registered,
+        if (n + 1) % every == 0 and n + 1 < len(looks):
+            save(n + 1)
+            if progress is not None:
+                progress(n + 1, len(looks))
+    save(len(looks))
+    if progress is not None:
+        progress(len(looks), len(looks))
+    return {"registered": registered, "unregistered": len(looks) - registered, "reused": start,
             "seconds": round(time.perf_counter() - t0, 2)}

@@ -12,8 +12,10 @@ A run in steps (``reconstruct(..., resume=True)``): features, matches, mapping. 
 marker beside the database (``database.steps.json``) records which steps are complete and
 with which settings, so a run that was stopped continues where it stopped: complete steps
 are reused, a stopped feature extraction or matching goes on from the images and pairs
-already in the database (COLMAP skips those), and mapping, whose result is the model
-folder written whole at its end, runs again. Every pycolmap call
+already in the database (COLMAP skips those), and a stopped mapping, whose result is the
+model folder written whole at its end, runs again; a finished one (the model there, made
+from the same features and matches with the same settings) is reused, for a caller stopped
+after it. Every pycolmap call
 can be cancelled (``should_stop``): it raises :class:`~recgs_addon.core.errors.Cancelled`.
 """
 from __future__ import annotations
@@ -86,6 +88,12 @@ class SfmOptions:
         """What the matches in a database depend on (besides the features)."""
         return {"matching": self.matching, "overlap": self.overlap, "quadratic_overlap": self.quadratic_overlap,
                 "vocab_tree": self.vocab_tree}
+
+    def mapping_key(self) -> dict:
+        """What the model depends on (besides the features and matches)."""
+        return {"seed": self.seed, "init_min_num_inliers": self.init_min_num_inliers,
+                "abs_pose_min_num_inliers": self.abs_pose_min_num_inliers, "min_model_size": self.min_model_size,
+                "min_registered": self.min_registered}
 
 
 @dataclass
@@ -370,6 +378,20 @@ def reconstruct(image_dir: str | Path, model_dir: str | Path, database: str | Pa
         report("matching", total, total)
 
     # -- mapping -----------------------------------------------------------------------------
+    done_mapping = steps.get("mapping", {})
+    if ("features" in reused and "matching" in reused and done_mapping.get("done")
+            and done_mapping.get("key") == o.mapping_key() and model_dir.is_dir()):
+        # the model of an earlier run on the same features and matches (stopped after it, in
+        # whatever the caller does next): mapping again would only take its time
+        best = pycolmap.Reconstruction(str(model_dir))
+        reused.append("mapping")
+        report("mapping", int(best.num_reg_images()), n)
+        return SfmResult(reconstruction=best, model_dir=model_dir, images=n,
+                         registered=int(best.num_reg_images()), models=int(done_mapping.get("models", 1)),
+                         points=int(best.num_points3D()),
+                         mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
+                         camera=str(next(iter(best.cameras.values()))), seconds=time.perf_counter() - t0,
+                         step_seconds=seconds, reused=tuple(reused))
     t = time.perf_counter()
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = o.threads
@@ -413,7 +435,8 @@ def reconstruct(image_dir: str | Path, model_dir: str | Path, database: str | Pa
         if parent_made and not model_dir.exists():   # a failed run leaves no empty sparse/ behind
             shutil.rmtree(model_dir.parent, ignore_errors=True)
     seconds["mapping"] = time.perf_counter() - t
-    steps["mapping"] = {"done": True, "registered": int(best.num_reg_images()), "model": str(model_dir)}
+    steps["mapping"] = {"done": True, "key": o.mapping_key(), "registered": int(best.num_reg_images()),
+                        "models": len(recs), "model": str(model_dir)}
     _write_steps(marker, steps)
     report("mapping", int(best.num_reg_images()), n)
     return SfmResult(reconstruction=best, model_dir=model_dir, images=n,

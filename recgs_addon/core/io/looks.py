@@ -17,9 +17,13 @@ COLMAP writes it (world to camera: the rotation's unit quaternion, w first, and 
 translation, in the survey's world); a look without them is placed between the keyframes
 before and after it in time (:func:`place_looks`). A look frame has the survey's camera (the
 keyframe nearest in time), at any image size of the same aspect (its intrinsics are scaled).
+Import Video also records how far its placing of the looks got (``"placing"``: the digest of
+the model they were placed against, :func:`model_digest`, and how many, in order, were tried;
+:func:`placing_finished`).
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from dataclasses import dataclass
@@ -192,3 +196,28 @@ def look_reader(scene_dir, undistorted: bool):
                                               align_corners=False, antialias=True)
         return img[0].permute(1, 2, 0).clamp(0, 1).numpy()
     return read
+
+
+def model_digest(model_dir: str | Path) -> str:
+    """A digest of the model's files: the look frames placed against one model are kept for
+    that model only."""
+    h = hashlib.sha1()
+    for path in sorted(Path(model_dir).iterdir()):
+        if path.is_file():
+            h.update(path.name.encode())
+            h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def placing_finished(survey: str | Path, model_dir: str | Path) -> bool:
+    """Whether every look frame of ``survey`` was tried against the model in ``model_dir`` (or
+    it has none): an import stopped before then goes on with the look frames."""
+    listing = Path(survey) / LOOKS_FILE
+    if not listing.is_file():
+        return True
+    try:
+        doc = json.loads(listing.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    placing = doc.get("placing") or {}
+    return placing.get("done") == len(doc.get("looks", [])) and placing.get("model") == model_digest(model_dir)
