@@ -969,6 +969,37 @@ def test_time_limit_keeps_room_for_the_finishing(small_scene):
     assert 3.0 * (1 - FINISH_SHARE) <= tr.elapsed < 3.0
 
 
+def test_near_its_time_limit_a_run_times_a_render_of_the_model_as_it_is(small_scene):
+    """The reserve for the finishing rests on the latest render's time; a render timed on the
+    model the run started from (slow: its Gaussians are large) would end training early. Near
+    the limit a render timed RETIME_STEPS steps ago or more is timed again, on the model as it is
+    now, before the reserve decides; one timed since is trusted."""
+    from recgs_addon.core.train.progress import FINISH_SHARE, RETIME_STEPS
+
+    tr = make_trainer(small_scene, tiny_cfg(iterations=10 ** 6, max_minutes=1.0))   # 60 s
+    tr.finishing_renders = lambda: 10
+    tr.evaluate()
+    real = tr._render_s
+    assert real < 0.5
+    timed = []
+    render = tr.render_output
+    tr.render_output = lambda *a, **k: (timed.append(tr.step), render(*a, **k))[1]
+    tr._render_s = 2.0                     # as if timed on a slow start: 20 s of renders kept
+    assert tr.finishing_reserve() == pytest.approx(20.0)
+    tr.elapsed = 45.0                      # within the reserve of the 60-s limit
+    tr.step = tr._render_step + RETIME_STEPS - 1
+    assert tr.time_is_up() and timed == []               # timed lately: trusted
+    tr.step += 1
+    assert not tr.time_is_up() and timed == [tr.step]    # timed again: 10 renders now fit
+    assert tr._render_s < 0.5 and tr.finishing_reserve() < 5.0 and tr.elapsed > 45.0
+    tr.elapsed = 20.0                      # far from the limit: no render
+    tr.step += RETIME_STEPS
+    assert not tr.time_is_up() and timed == [tr.step - RETIME_STEPS]
+    tr.elapsed = 60.0 - 0.5 * tr.finishing_reserve()
+    assert tr.time_is_up()                                # within the fresh reserve: done
+    assert FINISH_SHARE * 60.0 > tr.finishing_reserve()
+
+
 def test_a_job_measures_what_an_output_image_takes_to_write(small_scene, tmp_path):
     """The job times a training photo written as PNG and EXR into its output folder, for the
     time limit's reserve, and leaves nothing there."""

@@ -96,6 +96,7 @@ class EvaluationMixin:
         dt = time.perf_counter() - t
         if level == 1:   # the finishing's renders are at the training resolution
             self._render_s = dt if self._render_s is None else 0.8 * self._render_s + 0.2 * dt
+            self._render_step = self.step
         return out
 
     @torch.no_grad()

@@ -12,6 +12,13 @@ from typing import Callable, Optional
 
 #: The most of a time limit kept for what follows training.
 FINISH_SHARE = 0.4
+#: Near the end of a time limit (within this many reserves of it) a render timed this many
+#: steps ago or more is timed again before the reserve decides: the model the run starts from
+#: renders several times slower than the trained one (its Gaussians are large: 0.81 s against
+#: 0.23-0.29 s a 1371x733 view of a pool, whose job ended 36 s early on a 180-s limit), and a
+#: growing model slower.
+RETIME_NEAR = 1.5
+RETIME_STEPS = 20
 
 
 @dataclass
@@ -57,6 +64,25 @@ class ProgressMixin:
         if est is None or self.time_limit_s is None:
             return 0.0
         return min(est, FINISH_SHARE * self.time_limit_s)
+
+    def time_is_up(self) -> bool:
+        """Whether the time limit, less the finishing's reserve (:meth:`finishing_reserve`), is
+        reached at ``elapsed``. Near it (:data:`RETIME_NEAR` reserves) a render timed
+        :data:`RETIME_STEPS` steps ago or more is timed again first, on the model as it is now
+        (one held-out view, the time it takes counted), so that the reserve follows the model."""
+        limit = self.time_limit_s
+        if limit is None:
+            return False
+        reserve = self.finishing_reserve()
+        if self.elapsed < limit - RETIME_NEAR * reserve:
+            return False
+        if self._render_s is not None and self.step - self._render_step >= RETIME_STEPS:
+            t = time.perf_counter()
+            self._render_s = None            # the new time replaces the old one
+            self.render_output((self.data.test_ids or self.data.train_ids)[0])
+            self.elapsed += time.perf_counter() - t
+            reserve = self.finishing_reserve()
+        return self.elapsed >= limit - reserve
 
     def start_clock(self, origin: Optional[float] = None) -> None:
         """Count the run's time from ``origin`` (a ``time.perf_counter()`` reading, default now;

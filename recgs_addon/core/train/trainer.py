@@ -103,7 +103,8 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin, LampMix
         #: report), asked anew as the run goes (a method's needs change): set by the job; the
         #: time limit leaves room for them (:meth:`finishing_reserve`)
         self.finishing_renders: Callable[[], int] = lambda: 0
-        self._render_s: Optional[float] = None   # seconds a full-resolution render took, lately
+        self._render_s: Optional[float] = None   # seconds a full-resolution render took, lately,
+        self._render_step = 0                     # ... timed last at this step
         #: ... and the output images written then, at ``write_s`` seconds each (one image of the
         #: training size, as the job measured it; 0 until then)
         self.finishing_writes: Callable[[], int] = lambda: 0
@@ -390,8 +391,8 @@ class Trainer(EvaluationMixin, DensityMixin, ProgressMixin, MediumMixin, LampMix
         while True:
             if self.step >= c.iterations:
                 self.done_reason = self.done_reason or "iteration limit"
-            if self.time_limit_s is not None and self.elapsed >= self.time_limit_s - self.finishing_reserve():
-                self.done_reason = self.done_reason or "time limit"
+            if not self.done_reason and self.time_is_up():
+                self.done_reason = "time limit"
             if self.done_reason:
                 return self.done_reason
             if should_stop is not None and should_stop():
