@@ -440,18 +440,25 @@ def test_video_command_solves_the_cameras(clip, imported):
     assert r2.returncode == 1 and "already made" in ev2[-1]["message"] and "--overwrite" in ev2[-1]["message"]
 
 
-def test_a_stopped_import_continues_where_it_stopped(clip, tmp_path):
-    out = tmp_path / "survey"
-    proc = subprocess.Popen([sys.executable, "-m", "recgs_addon", "video", str(clip[0]), "--out", str(out)],
+def stopped_video(clip_path, out, when) -> list:
+    """The video command on ``clip_path`` into ``out``, sent SIGTERM at the first event for which
+    ``when(event)`` holds; its events (it must end cleanly)."""
+    proc = subprocess.Popen([sys.executable, "-m", "recgs_addon", "video", str(clip_path), "--out", str(out)],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     events = []
     for line in proc.stdout:
         events.append(json.loads(line))
-        if events[-1].get("phase") == "features":
+        if when(events[-1]):
             proc.send_signal(signal.SIGTERM)
             break
     events += [json.loads(line) for line in proc.stdout]
     assert proc.wait(120) == 0, proc.stderr.read()[-2000:]
+    return events
+
+
+def test_a_stopped_import_continues_where_it_stopped(clip, tmp_path):
+    out = tmp_path / "survey"
+    events = stopped_video(clip[0], out, lambda e: e.get("phase") == "features")
     assert events[-1] == {"event": "done", "status": "cancelled", "reason": "received SIGTERM", "survey": str(out)}
     assert not (out / "sparse").exists()
     assert json.loads((out / "frames.json").read_text())["frames"]      # the frame step is complete
@@ -484,16 +491,7 @@ def test_an_import_stopped_while_placing_look_frames_goes_on_from_them(clip, tmp
     command goes on: the frames, features, matches and the model are reused (no mapping again),
     the look frames placed before the stop are kept, and only then is the survey made."""
     out = tmp_path / "survey"
-    proc = subprocess.Popen([sys.executable, "-m", "recgs_addon", "video", str(clip[0]), "--out", str(out)],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    events = []
-    for line in proc.stdout:
-        events.append(json.loads(line))
-        if events[-1].get("phase") == "looks" and events[-1]["done"] > 0:
-            proc.send_signal(signal.SIGTERM)
-            break
-    events += [json.loads(line) for line in proc.stdout]
-    assert proc.wait(120) == 0, proc.stderr.read()[-2000:]
+    events = stopped_video(clip[0], out, lambda e: e.get("phase") == "looks" and e["done"] > 0)
     assert events[-1]["status"] == "cancelled"
     placed = json.loads((out / "looks.json").read_text())["placing"]["done"]
     assert 0 < placed < len(json.loads((out / "looks.json").read_text())["looks"])
