@@ -386,12 +386,7 @@ def reconstruct(image_dir: str | Path, model_dir: str | Path, database: str | Pa
         best = pycolmap.Reconstruction(str(model_dir))
         reused.append("mapping")
         report("mapping", int(best.num_reg_images()), n)
-        return SfmResult(reconstruction=best, model_dir=model_dir, images=n,
-                         registered=int(best.num_reg_images()), models=int(done_mapping.get("models", 1)),
-                         points=int(best.num_points3D()),
-                         mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
-                         camera=str(next(iter(best.cameras.values()))), seconds=time.perf_counter() - t0,
-                         step_seconds=seconds, reused=tuple(reused))
+        return _result(best, model_dir, n, int(done_mapping.get("models", 1)), t0, seconds, reused)
     t = time.perf_counter()
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = o.threads
@@ -439,8 +434,14 @@ def reconstruct(image_dir: str | Path, model_dir: str | Path, database: str | Pa
                         "models": len(recs), "model": str(model_dir)}
     _write_steps(marker, steps)
     report("mapping", int(best.num_reg_images()), n)
-    return SfmResult(reconstruction=best, model_dir=model_dir, images=n,
-                     registered=int(best.num_reg_images()), models=len(recs), points=int(best.num_points3D()),
+    return _result(best, model_dir, n, len(recs), t0, seconds, reused)
+
+
+def _result(best, model_dir: Path, images: int, models: int, t0: float, seconds: dict, reused: list) -> SfmResult:
+    """:func:`reconstruct`'s result: the model ``best`` written to ``model_dir`` (the largest of
+    ``models``), of ``images`` photos, after ``time.perf_counter() - t0`` seconds."""
+    return SfmResult(reconstruction=best, model_dir=model_dir, images=images,
+                     registered=int(best.num_reg_images()), models=models, points=int(best.num_points3D()),
                      mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
                      camera=str(next(iter(best.cameras.values()))), seconds=time.perf_counter() - t0,
                      step_seconds=seconds, reused=tuple(reused))
