@@ -200,9 +200,9 @@ def with_look_frames(survey: Path, scene, data: TrainData, ids, views, overlap, 
         looks.append(geometry.PassView(photo, nan, torch.zeros(cam.height, cam.width, dtype=torch.bool), vm, K, lk.time))
     geometry.prior_geometry(looks, torch.tensor(np.asarray(scene.points), dtype=torch.float32))
     frames = views + looks
-    passes.LOOK_MAX_FRAMES = max_frames
+    wide = passes.with_looks(settings, [v.time for v in frames])
     return (frames, geometry.with_looks_overlap(overlap, views, looks, range(len(views))),
-            passes.with_looks(settings, [v.time for v in frames]))
+            dataclasses.replace(wide, max_frames=max(settings.max_frames, max_frames)))
 
 
 def bound(views, settings, overlap, ids, gts) -> None:
